@@ -1,0 +1,229 @@
+"""The scene contract: one way to describe a driving scene, whatever its source.
+
+A :class:`Scene` is a factual (or simulated) log of N agents over T steps at ``dt`` seconds,
+plus the :class:`~counterscene_env.scene.road.RoadMap` they drive on. Every scenario source
+(the highway-env generator, the ScenarioNet importer, the closed-loop simulator) produces one,
+and everything downstream (selection, the world model, metrics) reads only this.
+
+Conventions (DESIGN 3.1): SI units, world frame, ``yaw`` measured from +x counter-clockwise,
+``speed`` the signed speed along the heading. Where ``valid[i, t]`` is False the state entries
+of agent i at step t carry no meaning (they are zero after construction) and every consumer
+must mask them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from counterscene_env.scene.road import RoadMap
+
+#: Agent type labels. Vehicles are the agents the world model drives; the other types are kept
+#: so that collision checks see pedestrians, cyclists and static objects too.
+AGENT_TYPES = ("vehicle", "pedestrian", "cyclist", "other")
+
+DEFAULT_DT = 0.1  # [s]
+DEFAULT_HISTORY_STEPS = 31  # 3 s of history including the current frame (paper: 31)
+
+
+class SceneError(ValueError):
+    """A scene (in memory or on disk) breaks the contract; the message names the field."""
+
+
+@dataclass(eq=False)
+class Scene:
+    """N agents over T steps of ``dt`` seconds on a road.
+
+    Attributes:
+        positions: ``[N, T, 2]`` float64, m, world frame (agent box centre).
+        yaws: ``[N, T]`` float64, rad, heading from +x counter-clockwise.
+        speeds: ``[N, T]`` float64, m/s, signed speed along the heading.
+        extents: ``[N, 2]`` float64, m, (length, width) of each agent's box.
+        valid: ``[N, T]`` bool, whether the agent exists at that step.
+        agent_types: ``[N]`` str, one of :data:`AGENT_TYPES`.
+        agent_ids: ``[N]`` str, stable ids (track ids for real logs).
+        ego_index: row of the ego vehicle.
+        road: the road map (highway-env network, drivable area, lane centre lines).
+        dt: step length, s.
+        scenario_id: a human-readable id (``"intersection/seed=17"``, a nuScenes scene name).
+        current_index: the step that is "now": history is ``[:current_index + 1]``, the
+            future ``[current_index + 1:]``. Defaults to 30 (3 s of history at 10 Hz).
+        metadata: free-form JSON-serialisable facts about the source (seed, dataset, ...).
+    """
+
+    positions: np.ndarray
+    yaws: np.ndarray
+    speeds: np.ndarray
+    extents: np.ndarray
+    valid: np.ndarray
+    agent_types: np.ndarray
+    agent_ids: np.ndarray
+    ego_index: int
+    road: RoadMap
+    dt: float = DEFAULT_DT
+    scenario_id: str = ""
+    current_index: int = DEFAULT_HISTORY_STEPS - 1
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.positions = np.asarray(self.positions, dtype=np.float64)
+        self.yaws = np.asarray(self.yaws, dtype=np.float64)
+        self.speeds = np.asarray(self.speeds, dtype=np.float64)
+        self.extents = np.asarray(self.extents, dtype=np.float64)
+        self.valid = np.asarray(self.valid, dtype=bool)
+        self.agent_types = np.asarray(self.agent_types, dtype=str)
+        self.agent_ids = np.asarray(self.agent_ids, dtype=str)
+        self.ego_index = int(self.ego_index)
+        self.current_index = int(self.current_index)
+        self.dt = float(self.dt)
+        self._validate()
+        # Invalid entries carry no meaning; zero them so that NaNs from a source never leak.
+        inv = ~self.valid
+        self.positions[inv] = 0.0
+        self.yaws[inv] = 0.0
+        self.speeds[inv] = 0.0
+
+    # ------------------------------------------------------------------ validation
+    def _validate(self) -> None:
+        if self.positions.ndim != 3 or self.positions.shape[2] != 2:
+            raise SceneError(f"positions must be [N, T, 2], got {self.positions.shape}")
+        n, t, _ = self.positions.shape
+        expected = {
+            "yaws": (self.yaws, (n, t)),
+            "speeds": (self.speeds, (n, t)),
+            "valid": (self.valid, (n, t)),
+            "extents": (self.extents, (n, 2)),
+            "agent_types": (self.agent_types, (n,)),
+            "agent_ids": (self.agent_ids, (n,)),
+        }
+        for name, (arr, shape) in expected.items():
+            if arr.shape != shape:
+                raise SceneError(
+                    f"{name} must have shape {shape} for N={n}, T={t}; got {arr.shape}"
+                )
+        if n == 0 or t == 0:
+            raise SceneError(f"a scene needs at least one agent and one step, got N={n}, T={t}")
+        if not 0 <= self.ego_index < n:
+            raise SceneError(f"ego_index {self.ego_index} out of range for {n} agents")
+        if not self.dt > 0:
+            raise SceneError(f"dt must be positive, got {self.dt}")
+        if not 0 <= self.current_index < t:
+            raise SceneError(f"current_index {self.current_index} out of range for T={t}")
+        unknown = set(self.agent_types.tolist()) - set(AGENT_TYPES)
+        if unknown:
+            raise SceneError(f"unknown agent types {sorted(unknown)}; valid: {AGENT_TYPES}")
+        if len(set(self.agent_ids.tolist())) != n:
+            raise SceneError("agent_ids must be unique")
+        for name in ("positions", "yaws", "speeds"):
+            arr = getattr(self, name)
+            if not np.isfinite(arr[self.valid]).all():
+                raise SceneError(f"{name} has non-finite values at valid steps")
+        if not np.isfinite(self.extents).all() or (self.extents <= 0).any():
+            raise SceneError("extents must be finite and positive (length, width) in m")
+        if not isinstance(self.road, RoadMap):
+            raise SceneError(f"road must be a RoadMap, got {type(self.road).__name__}")
+
+    # ------------------------------------------------------------------ basic facts
+    @property
+    def num_agents(self) -> int:
+        return self.positions.shape[0]
+
+    @property
+    def num_steps(self) -> int:
+        return self.positions.shape[1]
+
+    @property
+    def duration(self) -> float:
+        """Length of the log in s (``(T - 1) * dt``)."""
+        return (self.num_steps - 1) * self.dt
+
+    @property
+    def vehicle_mask(self) -> np.ndarray:
+        """``[N]`` bool, True for agents of type ``"vehicle"``."""
+        return self.agent_types == "vehicle"
+
+    @property
+    def velocities(self) -> np.ndarray:
+        """``[N, T, 2]`` m/s, world-frame velocity from speed and heading."""
+        return self.speeds[..., None] * np.stack([np.cos(self.yaws), np.sin(self.yaws)], -1)
+
+    # ------------------------------------------------------------------ slicing
+    def replace(self, **changes) -> Scene:
+        """A copy with some fields replaced (arrays are not copied unless replaced)."""
+        return dataclasses.replace(self, **changes)
+
+    def time_slice(self, start: int, stop: int) -> Scene:
+        """Steps ``[start, stop)`` of the log; ``current_index`` is moved (and clipped) with it."""
+        if not 0 <= start < stop <= self.num_steps:
+            raise SceneError(f"time slice [{start}, {stop}) outside [0, {self.num_steps})")
+        return self.replace(
+            positions=self.positions[:, start:stop].copy(),
+            yaws=self.yaws[:, start:stop].copy(),
+            speeds=self.speeds[:, start:stop].copy(),
+            valid=self.valid[:, start:stop].copy(),
+            current_index=int(np.clip(self.current_index - start, 0, stop - start - 1)),
+        )
+
+    def history(self, steps: int = DEFAULT_HISTORY_STEPS, t: int | None = None) -> Scene:
+        """The ``steps`` frames ending at step ``t`` (inclusive; default ``current_index``).
+
+        Frames before the start of the log are not invented: the window is shorter then.
+        """
+        t = self.current_index if t is None else int(t)
+        return self.time_slice(max(0, t - steps + 1), t + 1)
+
+    def future(self, steps: int | None = None, t: int | None = None) -> Scene:
+        """The ``steps`` frames after step ``t`` (default: all frames after ``current_index``)."""
+        t = self.current_index if t is None else int(t)
+        stop = self.num_steps if steps is None else min(self.num_steps, t + 1 + int(steps))
+        if t + 1 >= stop:
+            raise SceneError(f"no future after step {t} in a log of {self.num_steps} steps")
+        return self.time_slice(t + 1, stop)
+
+    def select_agents(self, indices: np.ndarray | list[int]) -> Scene:
+        """Keep the given agent rows, in that order. The ego must be among them."""
+        idx = np.asarray(indices, dtype=np.int64)
+        where = np.flatnonzero(idx == self.ego_index)
+        if where.size != 1:
+            raise SceneError("select_agents must keep the ego exactly once")
+        return self.replace(
+            positions=self.positions[idx].copy(),
+            yaws=self.yaws[idx].copy(),
+            speeds=self.speeds[idx].copy(),
+            extents=self.extents[idx].copy(),
+            valid=self.valid[idx].copy(),
+            agent_types=self.agent_types[idx].copy(),
+            agent_ids=self.agent_ids[idx].copy(),
+            ego_index=int(where[0]),
+        )
+
+    def nearest_indices(
+        self, k: int, t: int | None = None, types: tuple[str, ...] | None = None
+    ) -> np.ndarray:
+        """Indices of the ego and the ``k - 1`` agents nearest to it at step ``t``.
+
+        The ego comes first, the others by increasing distance; agents not valid at ``t``
+        (or not of one of ``types``) are left out, so fewer than ``k`` may come back.
+        Ties break by row index, so the result is deterministic.
+        """
+        t = self.current_index if t is None else int(t)
+        d = np.linalg.norm(self.positions[:, t] - self.positions[self.ego_index, t], axis=-1)
+        ok = self.valid[:, t].copy()
+        if types is not None:
+            ok &= np.isin(self.agent_types, types)
+        ok[self.ego_index] = False
+        others = np.flatnonzero(ok)
+        others = others[np.argsort(d[others], kind="stable")][: max(0, k - 1)]
+        return np.concatenate([[self.ego_index], others]).astype(np.int64)
+
+    def nearest(self, k: int, t: int | None = None, types: tuple[str, ...] | None = None) -> Scene:
+        """The scene restricted to the ego and its ``k - 1`` nearest agents at step ``t``."""
+        return self.select_agents(self.nearest_indices(k, t, types))
+
+    def __repr__(self) -> str:
+        return (
+            f"Scene({self.scenario_id!r}, agents={self.num_agents}, steps={self.num_steps}, "
+            f"dt={self.dt}, ego={self.ego_index}, lanes={len(self.road.lane_centerlines)})"
+        )

@@ -1,0 +1,362 @@
+"""Source 1: factual scenes recorded from highway-env traffic.
+
+highway-env builds the road (its ``highway``, ``merge``, ``intersection`` and ``roundabout``
+networks) and drives every vehicle with its IDM (longitudinal) and MOBIL (lane change) models.
+We only record: the simulation runs at ``sim_frequency`` Hz (a multiple of 10) and every
+``sim_frequency / 10``-th frame is kept, so the 10 Hz log is exact, not resampled.
+
+What we add to the stock environments, and why:
+
+- The env's controlled vehicle is replaced by an IDM/MOBIL vehicle on the same route, so the
+  factual log is pure traffic. It becomes the scene's ego (``highway``: the vehicle nearest the
+  middle of the platoon, since highway-env puts its ego at the back).
+- ``merge`` and ``roundabout`` come with four or five vehicles; we add traffic (more vehicles on
+  the main road and the ramp; vehicles entering the roundabout over time) so scenes interact.
+  ``intersection`` spawns over time with the env's own spawner. The merge road gets a 400 m
+  continuation so that the ego does not run off its end within the log.
+- Vehicles at the end of a lane with no successor leave the scene (their ``valid`` ends), as
+  the intersection env's own clean-up does; vehicles spawned later start invalid.
+- Factual logs must be safe: a recording in which any two boxes overlap, or in which the ego is
+  not present throughout, is rejected; :func:`generate` then tries the next seed.
+
+Same ``(scenario, seed, duration)``, same scene: all randomness comes from the env's
+``np_random`` seeded at reset, and the IDM class constants that ``IntersectionEnv`` overwrites
+process-wide are restored after every recording.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import highway_env
+import numpy as np
+from highway_env.envs.highway_env import HighwayEnv
+from highway_env.envs.intersection_env import IntersectionEnv
+from highway_env.envs.merge_env import MergeEnv
+from highway_env.envs.roundabout_env import RoundaboutEnv
+from highway_env.road.lane import LineType, StraightLane
+from highway_env.vehicle.behavior import IDMVehicle
+
+from counterscene_env.geometry import overlaps_over_time
+from counterscene_env.scene.core import DEFAULT_DT, DEFAULT_HISTORY_STEPS, Scene
+from counterscene_env.scene.road import RoadMap
+
+SCENARIOS = ("highway", "merge", "intersection", "roundabout")
+
+GENERATOR_VERSION = 1
+
+
+@dataclass(frozen=True)
+class GeneratorConfig:
+    """How a scene is recorded.
+
+    Attributes:
+        duration: recorded length, s (history + future); at least 13 s (3 s + 10 s).
+        warmup: simulated time discarded before recording starts, s (lets the artificial
+            initial placement settle into traffic).
+        sim_frequency: simulation rate, Hz; a multiple of 10 so that the 10 Hz log is exact.
+        map_margin: the map is clipped to the recorded positions' bounding box plus this, m.
+    """
+
+    duration: float = 13.0
+    warmup: float = 1.0
+    sim_frequency: int = 20
+    map_margin: float = 60.0
+
+    def __post_init__(self) -> None:
+        if self.duration < (DEFAULT_HISTORY_STEPS - 1) * DEFAULT_DT:
+            raise ValueError(f"duration must cover the 3 s history, got {self.duration} s")
+        if self.sim_frequency % 10:
+            raise ValueError(f"sim_frequency must be a multiple of 10 Hz, got {self.sim_frequency}")
+
+
+class RejectedScene(RuntimeError):
+    """A recording that may not serve as a factual log (collision, ego missing)."""
+
+
+def generate(
+    scenario: str,
+    seed: int,
+    duration: float = 13.0,
+    *,
+    max_attempts: int = 20,
+    config: GeneratorConfig | None = None,
+) -> Scene:
+    """Record one safe factual scene of a highway-env scenario.
+
+    Args:
+        scenario: one of :data:`SCENARIOS`.
+        seed: the first seed tried; a rejected recording moves on to ``seed + 1`` and so on.
+        duration: recorded length, s (the scene has ``round(duration / 0.1) + 1`` steps).
+        max_attempts: seeds tried before giving up.
+        config: further recording settings (``duration`` here overrides it).
+
+    Returns:
+        The scene; ``scene.metadata["seed"]`` is the seed actually used and
+        ``scene.metadata["rejected_seeds"]`` the ones skipped before it.
+    """
+    cfg = GeneratorConfig(**{**_as_dict(config), "duration": duration})
+    rejected: list[int] = []
+    for attempt in range(max_attempts):
+        try:
+            scene = record(scenario, seed + attempt, cfg)
+        except RejectedScene:
+            rejected.append(seed + attempt)
+            continue
+        scene.metadata["rejected_seeds"] = rejected
+        return scene
+    raise RuntimeError(
+        f"{scenario}: no safe scene in seeds {seed}..{seed + max_attempts - 1}; "
+        "raise max_attempts or change the seed"
+    )
+
+
+def record(scenario: str, seed: int, config: GeneratorConfig | None = None) -> Scene:
+    """Record exactly one seed; raises :class:`RejectedScene` if it is not a safe log."""
+    if scenario not in SCENARIOS:
+        raise ValueError(f"unknown scenario {scenario!r}; choose one of {SCENARIOS}")
+    cfg = config or GeneratorConfig()
+    start = time.perf_counter()
+    with _pristine_idm_constants():
+        env = _make_env(scenario)
+        env.reset(seed=int(seed))
+        traffic = _Traffic(scenario, env)
+        ego = traffic.setup()
+        frames_per_step = cfg.sim_frequency // 10
+        for _ in range(round(cfg.warmup * cfg.sim_frequency)):
+            traffic.step(1.0 / cfg.sim_frequency)
+        if ego not in env.road.vehicles:
+            raise RejectedScene("ego left the scene during warm-up")
+        log = _Recorder()
+        n_steps = round(cfg.duration / DEFAULT_DT) + 1
+        for k in range(n_steps):
+            log.snapshot(env.road.vehicles, k)
+            if k < n_steps - 1:
+                for _ in range(frames_per_step):
+                    traffic.step(1.0 / cfg.sim_frequency)
+        network = env.road.network
+        env.close()
+    scene = log.to_scene(ego, network, n_steps, cfg, scenario, seed)
+    if scenario == "highway":
+        scene = scene.replace(ego_index=_platoon_middle(scene))
+    if not scene.valid[scene.ego_index].all():
+        raise RejectedScene("the ego is not present for the whole log")
+    overlap = overlaps_over_time(scene.positions, scene.yaws, scene.extents, scene.valid)
+    if overlap.any():
+        raise RejectedScene(f"boxes overlap at {int(overlap.any(axis=(1, 2)).sum())} steps")
+    scene.metadata["generation_time_s"] = time.perf_counter() - start
+    return scene
+
+
+# ---------------------------------------------------------------------- environments
+_ENV_CLASSES = {
+    "highway": HighwayEnv,
+    "merge": MergeEnv,
+    "intersection": IntersectionEnv,
+    "roundabout": RoundaboutEnv,
+}
+
+# Overrides of each env's default config. Frequencies are irrelevant here (we step the road
+# ourselves); the counts shape the traffic.
+_ENV_CONFIG = {
+    "highway": {"lanes_count": 3, "vehicles_count": 24, "vehicles_density": 1.2},
+    "merge": {},
+    "intersection": {"initial_vehicle_count": 10, "spawn_probability": 0.6},
+    "roundabout": {},
+}
+
+
+def _make_env(scenario: str):
+    return _ENV_CLASSES[scenario](config=dict(_ENV_CONFIG[scenario]))
+
+
+class _Traffic:
+    """Per-scenario set-up and per-frame housekeeping around ``road.act(); road.step(dt)``."""
+
+    def __init__(self, scenario: str, env) -> None:
+        self.scenario = scenario
+        self.env = env
+        self.road = env.road
+        self.rng = env.np_random
+        self.time = 0.0
+        self.next_spawn = 1.0
+
+    def setup(self):
+        """Replace controlled vehicles by IDM/MOBIL ones, add traffic; return the ego vehicle."""
+        ego = None
+        for controlled in list(self.env.controlled_vehicles):
+            idm = IDMVehicle.create_from(controlled)
+            self.road.vehicles[self.road.vehicles.index(controlled)] = idm
+            ego = ego or idm
+        if self.scenario == "merge":
+            self._extend_merge_road()
+            for lane, s_lo, s_hi in ((("a", "b", 0), 0, 200), (("a", "b", 1), 0, 200)):
+                for _ in range(3):
+                    self._spawn(lane, self.rng.uniform(s_lo, s_hi), self.rng.uniform(23, 30))
+            for _ in range(2):
+                self._spawn(("j", "k", 0), self.rng.uniform(20, 100), self.rng.uniform(18, 24))
+        elif self.scenario == "roundabout":
+            for _ in range(3):
+                self._spawn_roundabout_entry()
+        return ego
+
+    def step(self, dt: float) -> None:
+        self.road.act()
+        self.road.step(dt)
+        self.time += dt
+        self._remove_finished()
+        if self.time + 1e-9 >= self.next_spawn:
+            # Spawn once per simulated second, as IntersectionEnv does once per (1 Hz) step.
+            self.next_spawn += 1.0
+            if self.scenario == "intersection":
+                self.env._clear_vehicles()
+                self.env._spawn_vehicle(spawn_probability=self.env.config["spawn_probability"])
+            elif self.scenario == "roundabout" and self.rng.uniform() < 0.5:
+                self._spawn_roundabout_entry()
+
+    # -- helpers
+    def _spawn(self, lane_index, longitudinal: float, speed: float, destination=None):
+        """Put an IDM vehicle on a lane unless it would start within 15 m of another one."""
+        lane = self.road.network.get_lane(lane_index)
+        position = lane.position(longitudinal, 0.0)
+        if any(np.linalg.norm(v.position - position) < 15.0 for v in self.road.vehicles):
+            return None
+        vehicle = IDMVehicle.make_on_lane(self.road, lane_index, longitudinal, speed=speed)
+        if destination is not None:
+            vehicle.plan_route_to(destination)
+        vehicle.randomize_behavior()
+        self.road.vehicles.append(vehicle)
+        return vehicle
+
+    def _spawn_roundabout_entry(self) -> None:
+        entries = [("ser", "ses", 0), ("eer", "ees", 0), ("ner", "nes", 0), ("wer", "wes", 0)]
+        exits = ["sxr", "exr", "nxr", "wxr"]
+        k = int(self.rng.integers(4))
+        destination = exits[int(self.rng.choice([i for i in range(4) if i != k]))]
+        self._spawn(
+            entries[k], self.rng.uniform(0.0, 30.0), self.rng.uniform(7.0, 10.0), destination
+        )
+
+    def _remove_finished(self) -> None:
+        """Vehicles at the end of a dead-end lane leave (their centre still on the lane)."""
+        graph = self.road.network.graph
+        keep = []
+        for v in self.road.vehicles:
+            lane = v.lane
+            if lane is not None and not graph.get(v.lane_index[1]):
+                s, _ = lane.local_coordinates(v.position)
+                if s >= lane.length - 1.0:
+                    continue
+            keep.append(v)
+        self.road.vehicles = keep
+
+    def _extend_merge_road(self) -> None:
+        net = self.road.network
+        c, s, n = LineType.CONTINUOUS_LINE, LineType.STRIPED, LineType.NONE
+        for i, line_types in enumerate(([c, s], [n, c])):
+            end = net.get_lane(("c", "d", i)).end
+            net.add_lane(
+                "d", "e", StraightLane(end, end + np.array([400.0, 0.0]), line_types=line_types)
+            )
+
+
+@contextlib.contextmanager
+def _pristine_idm_constants() -> Iterator[None]:
+    """IntersectionEnv sets IDM class constants process-wide; undo that after each recording."""
+    names = ("DISTANCE_WANTED", "COMFORT_ACC_MAX", "COMFORT_ACC_MIN", "TIME_WANTED", "DELTA")
+    saved = {name: IDMVehicle.__dict__[name] for name in names if name in IDMVehicle.__dict__}
+    try:
+        yield
+    finally:
+        for name in names:
+            if name in saved:
+                setattr(IDMVehicle, name, saved[name])
+            elif name in IDMVehicle.__dict__:
+                delattr(IDMVehicle, name)
+
+
+# ---------------------------------------------------------------------- recording
+class _Recorder:
+    """Collects vehicle states per 10 Hz step, indexed by first appearance."""
+
+    def __init__(self) -> None:
+        self.rows: dict[int, int] = {}
+        self.vehicles: list = []
+        self.states: list[dict[int, tuple[float, float, float, float]]] = []
+
+    def snapshot(self, vehicles, k: int) -> None:
+        frame = {}
+        for v in vehicles:
+            key = id(v)
+            if key not in self.rows:
+                self.rows[key] = len(self.vehicles)
+                self.vehicles.append(v)
+            frame[self.rows[key]] = (
+                float(v.position[0]),
+                float(v.position[1]),
+                float(v.heading),
+                float(v.speed),
+            )
+        self.states.append(frame)
+
+    def to_scene(
+        self, ego, network, n_steps: int, cfg: GeneratorConfig, scenario: str, seed: int
+    ) -> Scene:
+        n = len(self.vehicles)
+        state = np.zeros((n, n_steps, 4))
+        valid = np.zeros((n, n_steps), dtype=bool)
+        for k, frame in enumerate(self.states):
+            for row, values in frame.items():
+                state[row, k] = values
+                valid[row, k] = True
+        pos = state[..., :2]
+        lo = pos[valid].min(axis=0) - cfg.map_margin
+        hi = pos[valid].max(axis=0) + cfg.map_margin
+        road = RoadMap.from_network(network, bounds=(lo[0], lo[1], hi[0], hi[1]))
+        return Scene(
+            positions=pos,
+            yaws=_wrap(state[..., 2]),
+            speeds=state[..., 3],
+            extents=np.array([[v.LENGTH, v.WIDTH] for v in self.vehicles]),
+            valid=valid,
+            agent_types=np.full(n, "vehicle"),
+            agent_ids=np.array([f"veh{i}" for i in range(n)]),
+            ego_index=self.rows[id(ego)],
+            road=road,
+            dt=DEFAULT_DT,
+            scenario_id=f"{scenario}/seed={seed}",
+            metadata={
+                "source": "highway-env",
+                "scenario": scenario,
+                "seed": int(seed),
+                "generator_version": GENERATOR_VERSION,
+                "highway_env_version": highway_env.__version__
+                if hasattr(highway_env, "__version__")
+                else "unknown",
+                "sim_frequency": cfg.sim_frequency,
+                "warmup_s": cfg.warmup,
+            },
+        )
+
+
+def _platoon_middle(scene: Scene) -> int:
+    """The vehicle present throughout that is nearest the platoon's median x at the current step."""
+    t = scene.current_index
+    always = np.flatnonzero(scene.valid.all(axis=1))
+    if always.size == 0:
+        return scene.ego_index
+    median_x = np.median(scene.positions[scene.valid[:, t], t, 0])
+    return int(always[np.argmin(np.abs(scene.positions[always, t, 0] - median_x))])
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+def _as_dict(config: GeneratorConfig | None) -> dict:
+    if config is None:
+        return {}
+    return {f: getattr(config, f) for f in GeneratorConfig.__dataclass_fields__}

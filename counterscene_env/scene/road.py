@@ -1,0 +1,264 @@
+"""The road a scene drives on: a highway-env ``RoadNetwork`` plus what the rest of us need from it.
+
+DESIGN 3.0: roads are highway-env networks (its Straight/Sine/Circular lanes for generated
+scenarios, ``PolyLaneFixedWidth`` lanes built from centre lines for imported maps), so that the
+ego can be driven and observed through highway-env. From a network we derive the two views the
+metrics and the world model read: lane centre polylines (``[P, 2]`` m, about 1 m apart) and a
+drivable area (a shapely geometry, the union of the lane surfaces).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+from highway_env.road.lane import (
+    AbstractLane,
+    CircularLane,
+    PolyLane,
+    PolyLaneFixedWidth,
+    SineLane,
+    StraightLane,
+)
+from highway_env.road.road import RoadNetwork
+
+#: Spacing of the sampled centre lines and lane-surface outlines, m.
+SAMPLE_SPACING = 1.0
+
+#: Gaps between lane surfaces narrower than twice this are paved over (morphological closing),
+#: m. highway-env lanes meet at junctions with small wedge-shaped gaps (ring to exit of the
+#: roundabout, turn lanes at the intersection) that its vehicles legally drive across.
+JUNCTION_FILL = 2.0
+
+
+@dataclass(eq=False)
+class RoadMap:
+    """A road network with its centre lines and drivable area.
+
+    Attributes:
+        network: the highway-env ``RoadNetwork`` (lanes the ego's vehicle model follows).
+        drivable_area: shapely (Multi)Polygon, m, world frame.
+        lane_centerlines: list of ``[P, 2]`` float64 arrays, m, in driving direction.
+        lane_widths: ``[L]`` float64, m, one per centre line.
+    """
+
+    network: RoadNetwork
+    drivable_area: shapely.Geometry
+    lane_centerlines: list[np.ndarray]
+    lane_widths: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.lane_centerlines = [np.asarray(c, dtype=np.float64) for c in self.lane_centerlines]
+        self.lane_widths = np.asarray(self.lane_widths, dtype=np.float64).reshape(-1)
+        if len(self.lane_centerlines) != len(self.lane_widths):
+            raise ValueError(
+                f"{len(self.lane_centerlines)} centre lines but {len(self.lane_widths)} widths"
+            )
+        for c in self.lane_centerlines:
+            if c.ndim != 2 or c.shape[1] != 2 or len(c) < 2:
+                raise ValueError(f"a lane centre line must be [P>=2, 2], got {c.shape}")
+        # Point-in-area queries are the hot path of ORR: prepare the geometry once.
+        shapely.prepare(self.drivable_area)
+
+    @classmethod
+    def from_network(
+        cls,
+        network: RoadNetwork,
+        bounds: tuple[float, float, float, float] | None = None,
+    ) -> RoadMap:
+        """Derive centre lines and drivable area from a highway-env network.
+
+        Args:
+            network: any highway-env network (all lane classes that implement ``position``).
+            bounds: optional ``(xmin, ymin, xmax, ymax)`` m; centre lines and area are clipped
+                to it (highway-env's straight highway lanes are kilometres long).
+        """
+        box = None if bounds is None else shapely.box(*bounds)
+        centerlines, widths, surfaces = [], [], []
+        for lane in network.lanes_list():
+            s = _lane_samples(lane)
+            width = float(lane.width_at(0.0))
+            center = np.array([lane.position(si, 0.0) for si in s])
+            left = np.array([lane.position(si, lane.width_at(si) / 2) for si in s])
+            right = np.array([lane.position(si, -lane.width_at(si) / 2) for si in s])
+            surface = shapely.make_valid(shapely.Polygon(np.concatenate([left, right[::-1]])))
+            if box is not None:
+                surface = surface.intersection(box)
+            if not surface.is_empty:
+                surfaces.append(surface)
+            for piece in _clip_polyline(center, box):
+                centerlines.append(piece)
+                widths.append(width)
+        area = shapely.union_all(surfaces) if surfaces else shapely.Polygon()
+        # Closing (grow then shrink) fills junction gaps but leaves the outer road edge in place.
+        area = area.buffer(JUNCTION_FILL, join_style="mitre").buffer(
+            -JUNCTION_FILL + 0.01, join_style="mitre"
+        )
+        if box is not None:
+            area = area.intersection(box)
+        return cls(network, area, centerlines, np.array(widths))
+
+    @classmethod
+    def from_centerlines(
+        cls,
+        centerlines: Sequence[np.ndarray],
+        widths: Sequence[float],
+        polygons: Sequence[np.ndarray | None] | None = None,
+        successors: Sequence[Sequence[int]] | None = None,
+        extra_area: shapely.Geometry | None = None,
+    ) -> RoadMap:
+        """Build a map from lane centre lines (real logs).
+
+        Each centre line becomes a ``PolyLaneFixedWidth`` lane of the network. Lanes are joined
+        where ``successors[i]`` lists the lanes that continue lane i (the end node of lane i is
+        the start node of each successor), so highway-env's route planning works across them.
+
+        Args:
+            centerlines: ``[P_i, 2]`` m arrays in driving direction.
+            widths: lane widths, m.
+            polygons: optional lane surface outlines ``[Q_i, 2]`` m; where absent the surface is
+                the centre line buffered by half its width.
+            successors: optional lane indices that continue each lane.
+            extra_area: optional further drivable surface (e.g. intersections) to union in.
+        """
+        n = len(centerlines)
+        polygons = polygons if polygons is not None else [None] * n
+        successors = successors if successors is not None else [[] for _ in range(n)]
+        if not (len(widths) == len(polygons) == len(successors) == n):
+            raise ValueError("centerlines, widths, polygons and successors must align")
+        start, end = _lane_nodes(n, successors)
+        network = RoadNetwork()
+        kept_lines, kept_widths, surfaces = [], [], []
+        for i, (line, width, poly) in enumerate(zip(centerlines, widths, polygons, strict=True)):
+            line = _dedupe(np.asarray(line, dtype=np.float64)[:, :2])
+            if len(line) < 2:
+                continue
+            network.add_lane(
+                start[i], end[i], PolyLaneFixedWidth(line.tolist(), width=float(width))
+            )
+            kept_lines.append(line)
+            kept_widths.append(float(width))
+            if poly is not None and len(poly) >= 3:
+                surfaces.append(shapely.make_valid(shapely.Polygon(np.asarray(poly)[:, :2])))
+            else:
+                surfaces.append(shapely.LineString(line).buffer(width / 2, cap_style="flat"))
+        if extra_area is not None:
+            surfaces.append(extra_area)
+        area = shapely.union_all(surfaces).buffer(0.01) if surfaces else shapely.Polygon()
+        return cls(network, area, kept_lines, np.array(kept_widths))
+
+
+# ---------------------------------------------------------------------- network serialisation
+# Lane classes a serialised network may name. A name outside this table is refused: unlike
+# highway-env's own ``lane_from_config`` we never import a class path read from a file.
+_LANE_CLASSES: dict[str, type[AbstractLane]] = {
+    cls.__name__: cls
+    for cls in (StraightLane, SineLane, CircularLane, PolyLaneFixedWidth, PolyLane)
+}
+
+
+def network_to_json(network: RoadNetwork) -> str:
+    """Serialise a network to JSON (lane class names and their constructor arguments)."""
+    lanes = []
+    for _from, to_dict in network.graph.items():
+        for _to, lane_list in to_dict.items():
+            for lane in lane_list:
+                cfg = lane.to_config()["config"]
+                if isinstance(lane, PolyLane):
+                    cfg = {
+                        "lane_points": cfg["lane_points"],
+                        "left_boundary_points": [
+                            p.position.tolist() for p in lane.left_boundary.poses
+                        ],
+                        "right_boundary_points": [
+                            p.position.tolist() for p in lane.right_boundary.poses
+                        ],
+                        **{
+                            k: cfg[k]
+                            for k in ("line_types", "forbidden", "speed_limit", "priority")
+                        },
+                    }
+                lanes.append(
+                    {"from": _from, "to": _to, "class": type(lane).__name__, "config": cfg}
+                )
+    return json.dumps(lanes, default=_json_default)
+
+
+def network_from_json(text: str) -> RoadNetwork:
+    """Rebuild a network written by :func:`network_to_json`; unknown lane classes are refused."""
+    network = RoadNetwork()
+    for entry in json.loads(text):
+        name = entry.get("class")
+        if name not in _LANE_CLASSES:
+            raise ValueError(f"unknown lane class {name!r}; allowed: {sorted(_LANE_CLASSES)}")
+        cfg = dict(entry["config"])
+        for key in ("start", "end", "center"):
+            if key in cfg:
+                cfg[key] = np.asarray(cfg[key], dtype=np.float64)
+        if cfg.get("line_types") is not None:
+            cfg["line_types"] = tuple(cfg["line_types"])
+        network.add_lane(entry["from"], entry["to"], _LANE_CLASSES[name](**cfg))
+    return network
+
+
+def _json_default(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    raise TypeError(f"cannot serialise {type(obj).__name__}")
+
+
+# ---------------------------------------------------------------------- helpers
+def _lane_samples(lane: AbstractLane) -> np.ndarray:
+    """Longitudinal sample positions along a lane, m: both ends, about SAMPLE_SPACING apart."""
+    if isinstance(lane, StraightLane) and not isinstance(lane, SineLane):
+        return np.array([0.0, lane.length])  # straight: the ends say everything
+    n = max(2, int(np.ceil(lane.length / SAMPLE_SPACING)) + 1)
+    return np.linspace(0.0, lane.length, n)
+
+
+def _clip_polyline(points: np.ndarray, box: shapely.Geometry | None) -> list[np.ndarray]:
+    """Clip a polyline to a box and resample each piece at about SAMPLE_SPACING."""
+    line = shapely.LineString(points)
+    if box is not None:
+        line = line.intersection(box)
+    pieces = list(getattr(line, "geoms", [line]))
+    out = []
+    for piece in pieces:
+        if piece.is_empty or piece.geom_type != "LineString" or piece.length < 1e-6:
+            continue
+        n = max(2, int(np.ceil(piece.length / SAMPLE_SPACING)) + 1)
+        pts = shapely.line_interpolate_point(piece, np.linspace(0.0, piece.length, n))
+        out.append(shapely.get_coordinates(pts))
+    return out
+
+
+def _dedupe(points: np.ndarray) -> np.ndarray:
+    """Drop consecutive duplicate points (highway-env's spline divides by segment length)."""
+    if len(points) < 2:
+        return points
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(points, axis=0), axis=1) > 1e-6])
+    return points[keep]
+
+
+def _lane_nodes(n: int, successors: Sequence[Sequence[int]]) -> tuple[list[str], list[str]]:
+    """Node names so that lane i ends where each of its successors starts (union-find)."""
+    parent = list(range(2 * n))  # node 2i: start of lane i, 2i+1: end of lane i
+
+    def find(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for i, succ in enumerate(successors):
+        for j in succ:
+            if 0 <= j < n:
+                parent[find(2 * i + 1)] = find(2 * j)
+    start = [f"n{find(2 * i)}" for i in range(n)]
+    end = [f"n{find(2 * i + 1)}" for i in range(n)]
+    return start, end
