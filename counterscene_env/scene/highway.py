@@ -14,6 +14,8 @@ What we add to the stock environments, and why:
   the main road and the ramp; vehicles entering the roundabout over time) so scenes interact.
   ``intersection`` spawns over time with the env's own spawner. The merge road gets a 400 m
   continuation so that the ego does not run off its end within the log.
+- Traffic is :class:`ForwardIDMVehicle`: highway-env's IDM/MOBIL vehicle whose speed never goes
+  below 0 (the stock class allows -40 m/s, and yielding cars at the intersection roll back).
 - Vehicles at the end of a lane with no successor leave the scene (their ``valid`` ends), as
   the intersection env's own clean-up does; vehicles spawned later start invalid.
 - Factual logs must be safe: a recording in which any two boxes overlap, or in which the ego is
@@ -45,6 +47,18 @@ from counterscene_env.scene.core import DEFAULT_DT, DEFAULT_HISTORY_STEPS, Scene
 from counterscene_env.scene.road import RoadMap
 
 SCENARIOS = ("highway", "merge", "intersection", "roundabout")
+
+
+class ForwardIDMVehicle(IDMVehicle):
+    """highway-env's IDM/MOBIL vehicle that never reverses.
+
+    The stock vehicle's speed floor (``MIN_SPEED = -40`` m/s, enforced softly) lets a car that
+    brakes to a stop roll backwards; we floor the speed at 0 after each integration step.
+    """
+
+    def step(self, dt: float) -> None:
+        super().step(dt)
+        self.speed = max(self.speed, 0.0)
 
 GENERATOR_VERSION = 1
 
@@ -167,10 +181,12 @@ _ENV_CONFIG = {
     "intersection": {"initial_vehicle_count": 10, "spawn_probability": 0.6},
     "roundabout": {},
 }
+_VEHICLE_TYPE = f"{__name__}.ForwardIDMVehicle"
 
 
 def _make_env(scenario: str):
-    return _ENV_CLASSES[scenario](config=dict(_ENV_CONFIG[scenario]))
+    config = {**_ENV_CONFIG[scenario], "other_vehicles_type": _VEHICLE_TYPE}
+    return _ENV_CLASSES[scenario](config=config)
 
 
 class _Traffic:
@@ -188,7 +204,7 @@ class _Traffic:
         """Replace controlled vehicles by IDM/MOBIL ones, add traffic; return the ego vehicle."""
         ego = None
         for controlled in list(self.env.controlled_vehicles):
-            idm = IDMVehicle.create_from(controlled)
+            idm = ForwardIDMVehicle.create_from(controlled)
             self.road.vehicles[self.road.vehicles.index(controlled)] = idm
             ego = ego or idm
         if self.scenario == "merge":
@@ -224,7 +240,7 @@ class _Traffic:
         position = lane.position(longitudinal, 0.0)
         if any(np.linalg.norm(v.position - position) < 15.0 for v in self.road.vehicles):
             return None
-        vehicle = IDMVehicle.make_on_lane(self.road, lane_index, longitudinal, speed=speed)
+        vehicle = ForwardIDMVehicle.make_on_lane(self.road, lane_index, longitudinal, speed=speed)
         if destination is not None:
             vehicle.plan_route_to(destination)
         vehicle.randomize_behavior()
@@ -267,15 +283,17 @@ class _Traffic:
 def _pristine_idm_constants() -> Iterator[None]:
     """IntersectionEnv sets IDM class constants process-wide; undo that after each recording."""
     names = ("DISTANCE_WANTED", "COMFORT_ACC_MAX", "COMFORT_ACC_MIN", "TIME_WANTED", "DELTA")
-    saved = {name: IDMVehicle.__dict__[name] for name in names if name in IDMVehicle.__dict__}
+    classes = (IDMVehicle, ForwardIDMVehicle)
+    saved = {(c, n): c.__dict__[n] for c in classes for n in names if n in c.__dict__}
     try:
         yield
     finally:
-        for name in names:
-            if name in saved:
-                setattr(IDMVehicle, name, saved[name])
-            elif name in IDMVehicle.__dict__:
-                delattr(IDMVehicle, name)
+        for c in classes:
+            for n in names:
+                if (c, n) in saved:
+                    setattr(c, n, saved[(c, n)])
+                elif n in c.__dict__:
+                    delattr(c, n)
 
 
 # ---------------------------------------------------------------------- recording

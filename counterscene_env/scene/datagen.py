@@ -1,0 +1,293 @@
+"""Building a dataset directory: scenes in shards plus a ``manifest.json``, resumable, parallel.
+
+Generated data (``counterscene generate --scenario S --scenes N --seed S0 --out DIR``): candidate
+seeds are cut into blocks of ``shard_size`` consecutive seeds; block k tries seeds
+``S0 + k * shard_size ...`` once each and writes the accepted scenes to ``shard-{k:05d}.npz``.
+A rejected seed (unsafe factual log) is listed in the manifest with its reason and replaced by
+the seeds after it, so the dataset is always "the first N safe seeds from S0", whatever the
+number of workers, and no two scenes share a seed.
+
+Real logs (``counterscene generate --from-scenarionet SRC --out DIR``): the sorted ``.pkl``
+files are cut into blocks the same way; a file that fails to load is listed with its error.
+
+Resuming: the manifest is rewritten after every finished shard; a rerun of the same command
+skips the shards it lists, so an interrupted run loses at most the shards in flight.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from pathlib import Path
+
+from counterscene_env.scene.shards import ShardError, load_scenes, save_scenes
+
+MANIFEST = "manifest.json"
+DATASET_FORMAT = "counterscene-dataset"
+DATASET_VERSION = 1
+
+
+def generate_dataset(
+    out: str | os.PathLike,
+    scenario: str,
+    scenes: int,
+    seed: int = 0,
+    *,
+    shard_size: int = 50,
+    workers: int = 1,
+    duration: float = 13.0,
+    progress: bool = True,
+) -> dict:
+    """Generate ``scenes`` safe scenes of a highway-env scenario into ``out``; returns the manifest."""
+    from counterscene_env.scene.highway import GENERATOR_VERSION, SCENARIOS
+
+    if scenario not in SCENARIOS:
+        raise ValueError(f"unknown scenario {scenario!r}; choose one of {SCENARIOS}")
+    if scenes < 1 or shard_size < 1 or workers < 1:
+        raise ValueError("scenes, shard_size and workers must be positive")
+    params = {
+        "source": "highway-env",
+        "scenario": scenario,
+        "seed": int(seed),
+        "shard_size": int(shard_size),
+        "duration": float(duration),
+        "generator_version": GENERATOR_VERSION,
+    }
+
+    def block_args(k: int) -> tuple:
+        lo = seed + k * shard_size
+        return (_generate_block, str(out), k, scenario, list(range(lo, lo + shard_size)), duration)
+
+    return _build(Path(out), params, scenes, block_args, None, workers, progress)
+
+
+def convert_scenarionet(
+    src: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    shard_size: int = 50,
+    workers: int = 1,
+    progress: bool = True,
+) -> dict:
+    """Convert every ScenarioNet ``.pkl`` under ``src`` into shards in ``out``; returns the manifest."""
+    files = sorted(str(p) for p in Path(src).rglob("*.pkl"))
+    if not files:
+        raise FileNotFoundError(f"{src}: no ScenarioNet .pkl files found")
+    params = {"source": "scenarionet", "src": str(Path(src).resolve()), "shard_size": int(shard_size)}
+    blocks = [files[i : i + shard_size] for i in range(0, len(files), shard_size)]
+
+    def block_args(k: int) -> tuple:
+        return (_convert_block, str(out), k, blocks[k])
+
+    return _build(Path(out), params, None, block_args, len(blocks), workers, progress)
+
+
+def read_manifest(directory: str | os.PathLike) -> dict:
+    """The manifest of a dataset directory, checked for format and version."""
+    path = Path(directory) / MANIFEST
+    if not path.is_file():
+        raise ShardError(f"{directory}: no {MANIFEST}; not a CounterScene dataset directory")
+    try:
+        manifest = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ShardError(f"{path}: corrupt manifest ({exc})") from exc
+    if manifest.get("format") != DATASET_FORMAT:
+        raise ShardError(f"{path}: not a CounterScene dataset manifest")
+    if int(manifest.get("version", -1)) > DATASET_VERSION:
+        raise ShardError(
+            f"{path}: dataset format version {manifest['version']} is newer than this "
+            f"counterscene_env reads ({DATASET_VERSION}); upgrade counterscene-env"
+        )
+    return manifest
+
+
+def shard_paths(directory: str | os.PathLike) -> list[Path]:
+    """The shard files of a dataset directory, in order."""
+    manifest = read_manifest(directory)
+    return [Path(directory) / s["file"] for s in manifest["shards"] if s["scenes"] > 0]
+
+
+# ---------------------------------------------------------------------- the build loop
+def _build(
+    out: Path,
+    params: dict,
+    target: int | None,
+    block_args: Callable[[int], tuple],
+    num_blocks: int | None,
+    workers: int,
+    progress: bool,
+) -> dict:
+    """Run blocks (in parallel) until ``target`` scenes (or all ``num_blocks``) are done."""
+    from tqdm.auto import tqdm
+
+    out.mkdir(parents=True, exist_ok=True)
+    manifest = _open_manifest(out, params)
+    done: dict[int, dict] = {
+        s["block"]: s
+        for s in manifest["shards"]
+        if (s["scenes"] == 0 or (out / s["file"]).is_file()) and not s.get("truncated")
+    }
+
+    def contiguous_total() -> tuple[int, int]:
+        total, k = 0, 0
+        while k in done:
+            total += done[k]["scenes"]
+            k += 1
+        return total, k
+
+    def finished() -> bool:
+        total, k = contiguous_total()
+        return total >= target if target is not None else k >= num_blocks
+
+    bar = tqdm(total=target, disable=not progress, unit="scene", desc=params.get("scenario", "convert"))
+    bar.update(sum(s["scenes"] for s in done.values()))
+    pool = ProcessPoolExecutor(max_workers=workers) if workers > 1 else None
+    pending: dict[Future, int] = {}
+    next_block, empty_streak = 0, 0
+    try:
+        while not finished():
+            # Keep workers busy, but never schedule blocks that cannot be needed.
+            while len(pending) < workers:
+                while next_block in done:
+                    next_block += 1
+                if num_blocks is not None and next_block >= num_blocks:
+                    break
+                if target is not None:
+                    hoped = sum(s["scenes"] for s in done.values()) + params["shard_size"] * len(pending)
+                    if hoped >= target and pending:
+                        break
+                fn, *args = block_args(next_block)
+                if pool is None:
+                    fut: Future = Future()
+                    fut.set_result(fn(*args))
+                else:
+                    fut = pool.submit(fn, *args)
+                pending[fut] = next_block
+                next_block += 1
+            if not pending:
+                break
+            finished_now, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in finished_now:
+                pending.pop(fut)
+                entry = fut.result()
+                done[entry["block"]] = entry
+                empty_streak = empty_streak + 1 if entry["scenes"] == 0 else 0
+                bar.update(entry["scenes"])
+                _write_manifest(out, manifest, done, target)
+            if target is not None and empty_streak >= 3:
+                raise RuntimeError(f"{out}: three blocks in a row produced no scene; see {MANIFEST}")
+    finally:
+        for fut in pending:
+            fut.cancel()
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+        bar.close()
+    if target is not None:
+        _truncate(out, done, target)
+    return _write_manifest(out, manifest, done, target)
+
+
+def _truncate(out: Path, done: dict[int, dict], target: int) -> None:
+    """Keep exactly the first ``target`` scenes (in seed order); drop blocks past them."""
+    total = 0
+    for k in sorted(done):
+        entry = done[k]
+        if total >= target:
+            (out / entry["file"]).unlink(missing_ok=True)
+            del done[k]
+            continue
+        keep = min(entry["scenes"], target - total)
+        if keep < entry["scenes"]:
+            path = out / entry["file"]
+            save_scenes(load_scenes(path)[:keep], path)
+            last_seed = entry["seeds"][keep - 1]
+            entry.update(
+                scenes=keep,
+                truncated=True,
+                seeds=entry["seeds"][:keep],
+                num_agents=entry["num_agents"][:keep],
+                gen_time_s=entry["gen_time_s"][:keep],
+                rejected=[r for r in entry["rejected"] if r[0] < last_seed],
+            )
+        total += keep
+
+
+def _open_manifest(out: Path, params: dict) -> dict:
+    from counterscene_env import __version__
+
+    if (out / MANIFEST).is_file():
+        manifest = read_manifest(out)
+        mismatch = {k: (manifest.get(k), v) for k, v in params.items() if manifest.get(k) != v}
+        if mismatch:
+            detail = ", ".join(f"{k}: {a!r} there, {b!r} asked" for k, (a, b) in mismatch.items())
+            raise ValueError(f"{out} holds a different dataset ({detail}); use another --out")
+        return manifest
+    return {
+        "format": DATASET_FORMAT,
+        "version": DATASET_VERSION,
+        **params,
+        "counterscene_version": __version__,
+        "scenes": 0,
+        "shards": [],
+    }
+
+
+def _write_manifest(out: Path, manifest: dict, done: dict[int, dict], target: int | None) -> dict:
+    manifest["shards"] = [done[k] for k in sorted(done)]
+    manifest["scenes"] = sum(s["scenes"] for s in manifest["shards"])
+    manifest["scenes_requested"] = target
+    manifest["rejected"] = sum(len(s["rejected"]) for s in manifest["shards"])
+    tmp = out / f".{MANIFEST}.tmp"
+    tmp.write_text(json.dumps(manifest, indent=1))
+    os.replace(tmp, out / MANIFEST)
+    return manifest
+
+
+# ---------------------------------------------------------------------- block workers
+def _generate_block(out: str, k: int, scenario: str, seeds: list[int], duration: float) -> dict:
+    from counterscene_env.scene.highway import GeneratorConfig, RejectedScene, record
+
+    cfg = GeneratorConfig(duration=duration)
+    scenes, rejected = [], []
+    for s in seeds:
+        try:
+            scenes.append(record(scenario, s, cfg))
+        except RejectedScene as exc:
+            rejected.append([s, str(exc)])
+    return _save_block(out, k, scenes, rejected, [int(sc.metadata["seed"]) for sc in scenes])
+
+
+def _convert_block(out: str, k: int, files: list[str]) -> dict:
+    from counterscene_env.scene.core import SceneError
+    from counterscene_env.scene.scenarionet import load_scenarionet
+
+    scenes, rejected = [], []
+    for f in files:
+        start = time.perf_counter()
+        try:
+            scene = load_scenarionet(f)
+        except SceneError as exc:
+            rejected.append([Path(f).name, str(exc)])
+            continue
+        scene.metadata["generation_time_s"] = time.perf_counter() - start
+        scenes.append(scene)
+    return _save_block(out, k, scenes, rejected, [Path(s.metadata.get("source_file", "")).name for s in scenes])
+
+
+def _save_block(out: str, k: int, scenes: list, rejected: list, ids: list) -> dict:
+    name = f"shard-{k:05d}.npz"
+    if scenes:
+        save_scenes(scenes, Path(out) / name)
+    return {
+        "block": k,
+        "file": name,
+        "scenes": len(scenes),
+        "seeds": ids,
+        "rejected": rejected,
+        "num_agents": [s.num_agents for s in scenes],
+        "num_steps": [s.num_steps for s in scenes],
+        "gen_time_s": [round(float(s.metadata.get("generation_time_s", 0.0)), 4) for s in scenes],
+    }

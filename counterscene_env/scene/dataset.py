@@ -1,0 +1,206 @@
+"""Training windows: fixed-size (history, future, map, validity) tensors in the ego frame.
+
+Each item is one scene at one "now" step ``t0``: the ego and its ``num_agents - 1`` nearest
+vehicles at ``t0`` (ego first, then by distance, zero-padded), their states over the
+``history_steps`` frames ending at ``t0`` and the ``future_steps`` frames after it, and the
+``num_lanes`` lane segments nearest the ego. Everything is expressed in the ego-centred frame
+of DESIGN 3.1: the ego at the origin, heading along +x, at ``t0``.
+
+Item keys (K agents, H history frames, F future frames, M lane segments of P points):
+
+==================  ==================  =====================================================
+key                 shape, dtype        meaning
+==================  ==================  =====================================================
+``history``         [K, H, 4] float32   x [m], y [m], yaw [rad, wrapped], speed [m/s]
+``history_valid``   [K, H] bool
+``future``          [K, F, 4] float32   as ``history``, frames ``t0 + 1 .. t0 + F``
+``future_valid``    [K, F] bool
+``extents``         [K, 2] float32      length, width [m]
+``agent_valid``     [K] bool            real agent (True) or padding
+``map``             [M, P, 2] float32   lane centre segments, x y [m], driving direction
+``map_valid``       [M] bool
+``map_widths``      [M] float32         lane width [m]
+``origin``          [3] float64         world x [m], y [m], yaw [rad] of the frame
+``scene_index``     [] int64            row of the scene in this dataset
+``t0``              [] int64            the "now" step in that scene
+==================  ==================  =====================================================
+
+Invalid entries (padding, frames where an agent is absent) are zero, never NaN.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from counterscene_env.scene.core import Scene
+from counterscene_env.scene.datagen import MANIFEST, shard_paths
+from counterscene_env.scene.shards import load_scenes
+
+
+@dataclass(frozen=True)
+class WindowConfig:
+    """Sizes of a training window.
+
+    Attributes:
+        history_steps: frames up to and including ``t0`` (paper: 31 = 3 s at 10 Hz).
+        future_steps: frames after ``t0`` (paper: 52 = 5.2 s).
+        num_agents: K, the ego plus its nearest vehicles.
+        num_lanes: M lane segments nearest the ego.
+        lane_points: P points per lane segment.
+        lane_segment_length: length of a lane segment, m.
+        map_radius: segments farther than this from the ego are left out, m.
+        stride: steps between consecutive ``t0`` of one scene.
+    """
+
+    history_steps: int = 31
+    future_steps: int = 52
+    num_agents: int = 16
+    num_lanes: int = 32
+    lane_points: int = 10
+    lane_segment_length: float = 20.0
+    map_radius: float = 60.0
+    stride: int = 10
+
+
+class SceneWindowDataset(Dataset):
+    """Windows over scenes from shard files or dataset directories (see module docstring).
+
+    Args:
+        sources: dataset directories (with ``manifest.json``), shard files, or ``Scene`` objects.
+        config: window sizes.
+
+    Windows are all ``t0`` in ``[history_steps - 1, T - future_steps - 1]`` (step ``stride``)
+    at which the ego is valid.
+    """
+
+    def __init__(
+        self,
+        sources: Sequence[str | os.PathLike | Scene] | str | os.PathLike,
+        config: WindowConfig | None = None,
+    ) -> None:
+        self.config = config or WindowConfig()
+        if isinstance(sources, (str, os.PathLike)):
+            sources = [sources]
+        self.scenes: list[Scene] = []
+        for src in sources:
+            if isinstance(src, Scene):
+                self.scenes.append(src)
+            elif (Path(src) / MANIFEST).is_file():
+                for shard in shard_paths(src):
+                    self.scenes.extend(load_scenes(shard))
+            else:
+                self.scenes.extend(load_scenes(src))
+        c = self.config
+        self._segments = [_lane_segments(s, c.lane_segment_length, c.lane_points) for s in self.scenes]
+        self.index: list[tuple[int, int]] = []
+        for i, s in enumerate(self.scenes):
+            first, last = c.history_steps - 1, s.num_steps - c.future_steps - 1
+            self.index += [(i, t) for t in range(first, last + 1, c.stride) if s.valid[s.ego_index, t]]
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, item: int) -> dict[str, torch.Tensor]:
+        i, t0 = self.index[item]
+        return {k: torch.from_numpy(np.asarray(v)) for k, v in self.window(i, t0).items()}
+
+    def window(self, scene_index: int, t0: int) -> dict[str, np.ndarray]:
+        """The window of one scene at one step, as numpy arrays (see the module docstring)."""
+        c = self.config
+        scene = self.scenes[scene_index]
+        K, H, F = c.num_agents, c.history_steps, c.future_steps
+        rows = scene.nearest_indices(K, t0, types=("vehicle",))
+        origin = np.array([*scene.positions[scene.ego_index, t0], scene.yaws[scene.ego_index, t0]])
+        to_ego = _frame_transform(origin)
+
+        def states(t_lo: int, t_hi: int) -> tuple[np.ndarray, np.ndarray]:
+            out = np.zeros((K, t_hi - t_lo, 4), np.float32)
+            ok = np.zeros((K, t_hi - t_lo), bool)
+            # Frames outside the log stay invalid (zero) rather than being invented.
+            lo, hi = max(t_lo, 0), min(t_hi, scene.num_steps)
+            sl = slice(lo - t_lo, hi - t_lo)
+            ok[: len(rows), sl] = scene.valid[rows, lo:hi]
+            xy = to_ego(scene.positions[rows, lo:hi])
+            yaw = _wrap(scene.yaws[rows, lo:hi] - origin[2])
+            out[: len(rows), sl] = np.concatenate(
+                [xy, yaw[..., None], scene.speeds[rows, lo:hi, None]], -1
+            )
+            out[~ok] = 0.0
+            return out, ok
+
+        history, history_valid = states(t0 - H + 1, t0 + 1)
+        future, future_valid = states(t0 + 1, t0 + 1 + F)
+        extents = np.zeros((K, 2), np.float32)
+        extents[: len(rows)] = scene.extents[rows]
+        agent_valid = np.zeros(K, bool)
+        agent_valid[: len(rows)] = True
+
+        seg, widths = self._segments[scene_index]
+        lanes = np.zeros((c.num_lanes, c.lane_points, 2), np.float32)
+        lane_valid = np.zeros(c.num_lanes, bool)
+        lane_widths = np.zeros(c.num_lanes, np.float32)
+        if len(seg):
+            dist = np.linalg.norm(seg - origin[:2], axis=-1).min(axis=1)
+            near = np.flatnonzero(dist <= c.map_radius)
+            near = near[np.argsort(dist[near], kind="stable")][: c.num_lanes]
+            lanes[: len(near)] = to_ego(seg[near])
+            lane_valid[: len(near)] = True
+            lane_widths[: len(near)] = widths[near]
+        return {
+            "history": history,
+            "history_valid": history_valid,
+            "future": future,
+            "future_valid": future_valid,
+            "extents": extents,
+            "agent_valid": agent_valid,
+            "map": lanes,
+            "map_valid": lane_valid,
+            "map_widths": lane_widths,
+            "origin": origin,
+            "scene_index": np.int64(scene_index),
+            "t0": np.int64(t0),
+        }
+
+
+def _frame_transform(origin: np.ndarray):
+    """World -> ego frame: translate by -origin[:2], rotate by -origin[2]."""
+    c, s = np.cos(origin[2]), np.sin(origin[2])
+    rot = np.array([[c, -s], [s, c]])  # columns: ego x and y axes in world coordinates
+
+    def apply(points: np.ndarray) -> np.ndarray:
+        return ((points - origin[:2]) @ rot).astype(np.float32)
+
+    return apply
+
+
+def _lane_segments(scene: Scene, length: float, points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Cut every centre line into pieces of ``length`` m resampled to ``points`` points.
+
+    Returns ``[S, points, 2]`` m (world frame) and ``[S]`` widths m. A last piece shorter than
+    ``length`` keeps its own length (points closer together), so no lane end is lost.
+    """
+    segs, widths = [], []
+    for line, width in zip(scene.road.lane_centerlines, scene.road.lane_widths, strict=True):
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
+        total = arc[-1]
+        if total <= 1e-6:
+            continue
+        starts = np.arange(0.0, total, length)
+        for a in starts:
+            s = np.linspace(a, min(a + length, total), points)
+            segs.append(np.stack([np.interp(s, arc, line[:, 0]), np.interp(s, arc, line[:, 1])], -1))
+            widths.append(width)
+    if not segs:
+        return np.zeros((0, points, 2)), np.zeros(0)
+    return np.stack(segs), np.asarray(widths)
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    return (angle + np.pi) % (2 * np.pi) - np.pi
