@@ -50,7 +50,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     src = gen.add_mutually_exclusive_group(required=True)
     src.add_argument(
-        "--scenario", choices=("highway", "merge", "intersection", "roundabout"),
+        "--scenario",
+        choices=("highway", "merge", "intersection", "roundabout"),
         help="highway-env road to record traffic on",
     )
     src.add_argument("--from-scenarionet", metavar="DIR", help="convert ScenarioNet .pkl files")
@@ -74,7 +75,9 @@ def _parser() -> argparse.ArgumentParser:
     ins.add_argument("path", help="scenes to inspect")
     ins.add_argument("--json", action="store_true", help="print one JSON object")
     ins.add_argument(
-        "--smooth", type=float, default=0.0,
+        "--smooth",
+        type=float,
+        default=0.0,
         help="acceleration smoothing window for HBR, s (0.5 suits nuScenes' interpolated logs)",
     )
     ins.set_defaults(func=_cmd_inspect)
@@ -87,13 +90,22 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     if args.from_scenarionet:
         manifest = convert_scenarionet(
-            args.from_scenarionet, args.out, shard_size=args.shard_size,
-            workers=args.workers, progress=not args.quiet,
+            args.from_scenarionet,
+            args.out,
+            shard_size=args.shard_size,
+            workers=args.workers,
+            progress=not args.quiet,
         )
     else:
         manifest = generate_dataset(
-            args.out, args.scenario, args.scenes, args.seed, shard_size=args.shard_size,
-            workers=args.workers, duration=args.duration, progress=not args.quiet,
+            args.out,
+            args.scenario,
+            args.scenes,
+            args.seed,
+            shard_size=args.shard_size,
+            workers=args.workers,
+            duration=args.duration,
+            progress=not args.quiet,
         )
     print(
         f"{manifest['scenes']} scenes in {len(manifest['shards'])} shards at {args.out} "
@@ -120,7 +132,10 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
                 "duration_s": round(scene.duration, 3),
                 "lanes": len(scene.road.lane_centerlines),
                 "time_s": round(load_time, 4),
-                **{k: m[k] for k in ("cr", "cr_all_agents", "orr", "hbr_ego", "hbr_all", "hbr_paper")},
+                **{
+                    k: m[k]
+                    for k in ("cr", "cr_all_agents", "orr", "hbr_ego", "hbr_all", "hbr_paper")
+                },
             }
         )
     if not rows:
@@ -128,18 +143,45 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
 
     def stat(key: str) -> dict:
         v = np.array([r[key] for r in rows], dtype=float)
-        return {"mean": float(np.nanmean(v)), "min": float(np.nanmin(v)), "max": float(np.nanmax(v))}
+        return {
+            "mean": float(np.nanmean(v)),
+            "min": float(np.nanmin(v)),
+            "max": float(np.nanmax(v)),
+        }
 
     summary = {"scenes": len(rows)} | {
         k: stat(k)
-        for k in ("agents", "vehicles", "duration_s", "lanes", "time_s", "cr", "cr_all_agents",
-                  "orr", "hbr_ego", "hbr_all", "hbr_paper")
+        for k in (
+            "agents",
+            "vehicles",
+            "duration_s",
+            "lanes",
+            "time_s",
+            "cr",
+            "cr_all_agents",
+            "orr",
+            "hbr_ego",
+            "hbr_all",
+            "hbr_paper",
+        )
     }
     if args.json:
         print(json.dumps(_finite({"summary": summary, "scenes": rows})))
         return 0
-    cols = ["scenario_id", "agents", "vehicles", "steps", "lanes", "time_s", "cr", "cr_all_agents",
-            "orr", "hbr_ego", "hbr_all", "hbr_paper"]
+    cols = [
+        "scenario_id",
+        "agents",
+        "vehicles",
+        "steps",
+        "lanes",
+        "time_s",
+        "cr",
+        "cr_all_agents",
+        "orr",
+        "hbr_ego",
+        "hbr_all",
+        "hbr_paper",
+    ]
     print("  ".join(f"{c:>14}" for c in cols))
     for r in rows:
         print("  ".join(f"{_fmt(r[c]):>14}" for c in cols))

@@ -68,13 +68,14 @@ class Scene:
     metadata: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.positions = np.asarray(self.positions, dtype=np.float64)
-        self.yaws = np.asarray(self.yaws, dtype=np.float64)
-        self.speeds = np.asarray(self.speeds, dtype=np.float64)
-        self.extents = np.asarray(self.extents, dtype=np.float64)
-        self.valid = np.asarray(self.valid, dtype=bool)
-        self.agent_types = np.asarray(self.agent_types, dtype=str)
-        self.agent_ids = np.asarray(self.agent_ids, dtype=str)
+        # Own copies: the scene zeroes invalid entries and must not alias the caller's arrays.
+        self.positions = np.array(self.positions, dtype=np.float64)
+        self.yaws = np.array(self.yaws, dtype=np.float64)
+        self.speeds = np.array(self.speeds, dtype=np.float64)
+        self.extents = np.array(self.extents, dtype=np.float64)
+        self.valid = np.array(self.valid, dtype=bool)
+        self.agent_types = np.array(self.agent_types, dtype=str)
+        self.agent_ids = np.array(self.agent_ids, dtype=str)
         self.ego_index = int(self.ego_index)
         self.current_index = int(self.current_index)
         self.dt = float(self.dt)
@@ -107,6 +108,8 @@ class Scene:
             raise SceneError(f"a scene needs at least one agent and one step, got N={n}, T={t}")
         if not 0 <= self.ego_index < n:
             raise SceneError(f"ego_index {self.ego_index} out of range for {n} agents")
+        if self.agent_types[self.ego_index] != "vehicle":
+            raise SceneError(f"the ego must be a vehicle, got {self.agent_types[self.ego_index]!r}")
         if not self.dt > 0:
             raise SceneError(f"dt must be positive, got {self.dt}")
         if not 0 <= self.current_index < t:
@@ -155,7 +158,11 @@ class Scene:
         return dataclasses.replace(self, **changes)
 
     def time_slice(self, start: int, stop: int) -> Scene:
-        """Steps ``[start, stop)`` of the log; ``current_index`` is moved (and clipped) with it."""
+        """Steps ``[start, stop)`` of the log.
+
+        ``current_index`` moves with the slice and is clipped into it: a slice that starts after
+        "now" (a future window) has ``current_index = 0``, its first frame.
+        """
         if not 0 <= start < stop <= self.num_steps:
             raise SceneError(f"time slice [{start}, {stop}) outside [0, {self.num_steps})")
         return self.replace(

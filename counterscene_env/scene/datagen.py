@@ -76,7 +76,11 @@ def convert_scenarionet(
     files = sorted(str(p) for p in Path(src).rglob("*.pkl"))
     if not files:
         raise FileNotFoundError(f"{src}: no ScenarioNet .pkl files found")
-    params = {"source": "scenarionet", "src": str(Path(src).resolve()), "shard_size": int(shard_size)}
+    params = {
+        "source": "scenarionet",
+        "src": str(Path(src).resolve()),
+        "shard_size": int(shard_size),
+    }
     blocks = [files[i : i + shard_size] for i in range(0, len(files), shard_size)]
 
     def block_args(k: int) -> tuple:
@@ -142,7 +146,9 @@ def _build(
         total, k = contiguous_total()
         return total >= target if target is not None else k >= num_blocks
 
-    bar = tqdm(total=target, disable=not progress, unit="scene", desc=params.get("scenario", "convert"))
+    bar = tqdm(
+        total=target, disable=not progress, unit="scene", desc=params.get("scenario", "convert")
+    )
     bar.update(sum(s["scenes"] for s in done.values()))
     pool = ProcessPoolExecutor(max_workers=workers) if workers > 1 else None
     pending: dict[Future, int] = {}
@@ -156,7 +162,9 @@ def _build(
                 if num_blocks is not None and next_block >= num_blocks:
                     break
                 if target is not None:
-                    hoped = sum(s["scenes"] for s in done.values()) + params["shard_size"] * len(pending)
+                    hoped = sum(s["scenes"] for s in done.values()) + params["shard_size"] * len(
+                        pending
+                    )
                     if hoped >= target and pending:
                         break
                 fn, *args = block_args(next_block)
@@ -178,7 +186,9 @@ def _build(
                 bar.update(entry["scenes"])
                 _write_manifest(out, manifest, done, target)
             if target is not None and empty_streak >= 3:
-                raise RuntimeError(f"{out}: three blocks in a row produced no scene; see {MANIFEST}")
+                raise RuntimeError(
+                    f"{out}: three blocks in a row produced no scene; see {MANIFEST}"
+                )
     finally:
         for fut in pending:
             fut.cancel()
@@ -274,7 +284,9 @@ def _convert_block(out: str, k: int, files: list[str]) -> dict:
             continue
         scene.metadata["generation_time_s"] = time.perf_counter() - start
         scenes.append(scene)
-    return _save_block(out, k, scenes, rejected, [Path(s.metadata.get("source_file", "")).name for s in scenes])
+    return _save_block(
+        out, k, scenes, rejected, [Path(s.metadata.get("source_file", "")).name for s in scenes]
+    )
 
 
 def _save_block(out: str, k: int, scenes: list, rejected: list, ids: list) -> dict:

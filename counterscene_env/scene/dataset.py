@@ -98,11 +98,15 @@ class SceneWindowDataset(Dataset):
             else:
                 self.scenes.extend(load_scenes(src))
         c = self.config
-        self._segments = [_lane_segments(s, c.lane_segment_length, c.lane_points) for s in self.scenes]
+        self._segments = [
+            _lane_segments(s, c.lane_segment_length, c.lane_points) for s in self.scenes
+        ]
         self.index: list[tuple[int, int]] = []
         for i, s in enumerate(self.scenes):
             first, last = c.history_steps - 1, s.num_steps - c.future_steps - 1
-            self.index += [(i, t) for t in range(first, last + 1, c.stride) if s.valid[s.ego_index, t]]
+            self.index += [
+                (i, t) for t in range(first, last + 1, c.stride) if s.valid[s.ego_index, t]
+            ]
 
     def __len__(self) -> int:
         return len(self.index)
@@ -195,7 +199,9 @@ def _lane_segments(scene: Scene, length: float, points: int) -> tuple[np.ndarray
         starts = np.arange(0.0, total, length)
         for a in starts:
             s = np.linspace(a, min(a + length, total), points)
-            segs.append(np.stack([np.interp(s, arc, line[:, 0]), np.interp(s, arc, line[:, 1])], -1))
+            segs.append(
+                np.stack([np.interp(s, arc, line[:, 0]), np.interp(s, arc, line[:, 1])], -1)
+            )
             widths.append(width)
     if not segs:
         return np.zeros((0, points, 2)), np.zeros(0)

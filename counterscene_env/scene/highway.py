@@ -60,6 +60,7 @@ class ForwardIDMVehicle(IDMVehicle):
         super().step(dt)
         self.speed = max(self.speed, 0.0)
 
+
 GENERATOR_VERSION = 1
 
 

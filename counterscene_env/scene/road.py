@@ -129,12 +129,18 @@ class RoadMap:
         successors = successors if successors is not None else [[] for _ in range(n)]
         if not (len(widths) == len(polygons) == len(successors) == n):
             raise ValueError("centerlines, widths, polygons and successors must align")
-        start, end = _lane_nodes(n, successors)
+        lines = [_dedupe(np.asarray(line, dtype=np.float64)[:, :2]) for line in centerlines]
+        usable = [len(line) >= 2 for line in lines]
+        # Degenerate lanes are dropped before nodes are named, so no link runs through them.
+        links = [
+            [j for j in succ if 0 <= j < n and usable[j]] if usable[i] else []
+            for i, succ in enumerate(successors)
+        ]
+        start, end = _lane_nodes(n, links)
         network = RoadNetwork()
         kept_lines, kept_widths, surfaces = [], [], []
-        for i, (line, width, poly) in enumerate(zip(centerlines, widths, polygons, strict=True)):
-            line = _dedupe(np.asarray(line, dtype=np.float64)[:, :2])
-            if len(line) < 2:
+        for i, (line, width, poly) in enumerate(zip(lines, widths, polygons, strict=True)):
+            if not usable[i]:
                 continue
             network.add_lane(
                 start[i], end[i], PolyLaneFixedWidth(line.tolist(), width=float(width))

@@ -28,6 +28,7 @@ raises :class:`ShardError` naming the file and the problem.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import tempfile
@@ -100,7 +101,9 @@ def load_scenes(path: str | os.PathLike) -> list[Scene]:
         with np.load(path, allow_pickle=False) as data:
             header = _read_json(data, "format", path)
             if header.get("format") != SHARD_FORMAT:
-                raise ShardError(f"{path}: not a CounterScene shard (format={header.get('format')!r})")
+                raise ShardError(
+                    f"{path}: not a CounterScene shard (format={header.get('format')!r})"
+                )
             version = int(header.get("version", -1))
             if version > SHARD_VERSION:
                 raise ShardError(
@@ -113,7 +116,9 @@ def load_scenes(path: str | os.PathLike) -> list[Scene]:
     except ShardError:
         raise
     except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError) as exc:
-        raise ShardError(f"{path}: truncated or corrupt shard ({type(exc).__name__}: {exc})") from exc
+        raise ShardError(
+            f"{path}: truncated or corrupt shard ({type(exc).__name__}: {exc})"
+        ) from exc
 
 
 def _read_scene(data, i: int, path: Path) -> Scene:
@@ -128,7 +133,7 @@ def _read_scene(data, i: int, path: Path) -> Scene:
     road = RoadMap(
         network=network_from_json(str(get("road_network"))),
         drivable_area=shapely.from_wkb(get("road_area").tobytes()),
-        lane_centerlines=[lines[a:b] for a, b in zip(offsets[:-1], offsets[1:], strict=True)],
+        lane_centerlines=[lines[a:b] for a, b in itertools.pairwise(offsets)],
         lane_widths=get("road_widths"),
     )
     return Scene(

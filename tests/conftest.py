@@ -1,0 +1,47 @@
+"""Shared fixtures: small scenes built by hand or generated once per test session."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+from highway_env.road.road import RoadNetwork
+
+from counterscene_env.scene import RoadMap, Scene
+
+os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+
+
+def straight_road(lanes: int = 2, length: float = 300.0) -> RoadMap:
+    """A straight road along +x, lanes 4 m wide centred on y = 0, 4, ...; drivable y in [-2, 4 lanes - 2]."""
+    return RoadMap.from_network(RoadNetwork.straight_road_network(lanes, length=length))
+
+
+def make_scene(
+    positions, yaws=None, speeds=None, extents=None, valid=None, ego_index=0, **kw
+) -> Scene:
+    """A vehicle-only scene from [N, T, 2] positions; other fields default sensibly."""
+    positions = np.asarray(positions, dtype=float)
+    n, t, _ = positions.shape
+    return Scene(
+        positions=positions,
+        yaws=np.zeros((n, t)) if yaws is None else yaws,
+        speeds=np.zeros((n, t)) if speeds is None else speeds,
+        extents=np.tile([4.0, 2.0], (n, 1)) if extents is None else extents,
+        valid=np.ones((n, t), bool) if valid is None else valid,
+        agent_types=kw.pop("agent_types", np.full(n, "vehicle")),
+        agent_ids=kw.pop("agent_ids", np.array([f"a{i}" for i in range(n)])),
+        ego_index=ego_index,
+        road=kw.pop("road", None) or straight_road(),
+        current_index=kw.pop("current_index", 0),
+        **kw,
+    )
+
+
+@pytest.fixture(scope="session")
+def generated():
+    """One generated scene per highway-env scenario (seed 1), built once."""
+    from counterscene_env.scene import generate
+
+    return {sc: generate(sc, seed=1) for sc in ("highway", "merge", "intersection", "roundabout")}

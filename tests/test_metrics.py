@@ -1,0 +1,292 @@
+"""Scene metrics on tiny hand-made scenes with known answers."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from highway_env.road.road import RoadNetwork
+
+from counterscene_env import metrics
+from counterscene_env.scene import RoadMap, Scene
+
+DT = 0.1
+HIST = 3  # history steps; current_index = HIST - 1, the rollout starts at step HIST
+CAR = (4.0, 2.0)
+
+
+@pytest.fixture(scope="module")
+def road():
+    # Two 4 m lanes along +x from x = 0 to 200 m: drivable for y in [-2, 6].
+    return RoadMap.from_network(RoadNetwork.straight_road_network(2, length=200))
+
+
+def make_scene(road, positions, yaws=None, speeds=None, valid=None, types=None, ids=None):
+    positions = np.asarray(positions, dtype=float)
+    n, t, _ = positions.shape
+    return Scene(
+        positions=positions,
+        yaws=np.zeros((n, t)) if yaws is None else yaws,
+        speeds=np.zeros((n, t)) if speeds is None else speeds,
+        extents=np.array([CAR] * n),
+        valid=np.ones((n, t), bool) if valid is None else valid,
+        agent_types=["vehicle"] * n if types is None else types,
+        agent_ids=[f"a{i}" for i in range(n)] if ids is None else ids,
+        ego_index=0,
+        road=road,
+        dt=DT,
+        scenario_id="test",
+        current_index=HIST - 1,
+    )
+
+
+def crash_scene(road, steps=HIST + 100):
+    """Ego at 10 m/s along y = 0 (x = t m at step t) into a stopped car at x = 30.5 m.
+
+    The boxes first overlap when the ego's front (x_t + 2) passes the obstacle's rear (28.5):
+    at step 27, rollout step 24, i.e. 2.5 s into the rollout (the third second).
+    A third car cruises alongside in the other lane and never touches anyone.
+    """
+    t = np.arange(steps, dtype=float)
+    pos = np.zeros((3, steps, 2))
+    pos[0, :, 0] = t
+    pos[1, :, 0] = 30.5
+    pos[2, :, 0], pos[2, :, 1] = t + 5.0, 4.0
+    speeds = np.stack([np.full(steps, 10.0), np.zeros(steps), np.full(steps, 10.0)])
+    return make_scene(road, pos, speeds=speeds, ids=["ego", "obstacle", "neighbour"])
+
+
+# ---------------------------------------------------------------------- CR
+def test_crash_at_known_step_per_second_cr(road):
+    scene = crash_scene(road)
+    hits = metrics.ego_collision_steps(scene)
+    assert hits.shape == (100,)
+    assert np.flatnonzero(hits)[0] == 24
+    res = metrics.evaluate_scene(scene, adversary="obstacle")
+    assert [res["per_second"][str(h)]["CR"] for h in range(1, 11)] == [0.0, 0.0] + [1.0] * 8
+    assert res["cr"] == 1.0 and res["cr_all_agents"] == 1.0 and res["cr_non_ego"] == 0.0
+    assert res["cr_ego_adversary"] == 1.0
+    assert res["min_ttc"] == 0.0 and res["min_clearance_adversary"] == 0.0
+    assert metrics.ego_collided(scene, 2.4) is False and metrics.ego_collided(scene, 2.5)
+    other = metrics.evaluate_scene(scene, adversary=2)
+    assert other["cr_ego_adversary"] == 0.0 and other["adversary_id"] == "neighbour"
+    with pytest.raises(ValueError, match="nobody"):
+        metrics.evaluate_scene(scene, adversary="nobody")
+
+
+def test_rollout_cut_before_crash_ttc_and_clearance(road):
+    scene = crash_scene(road, steps=HIST + 20)  # last step 22: ego front at 24, gap 4.5 m
+    res = metrics.evaluate_scene(scene, adversary="obstacle")
+    assert res["cr"] == 0.0 and res["per_second"]["10"]["CR"] == 0.0
+    assert res["min_clearance_adversary"] == pytest.approx(4.5)
+    # Closing 4.5 m at 10 m/s: contact at 0.45 s, first 0.1 s sample after it is 0.5 s.
+    assert res["min_ttc"] == pytest.approx(0.5)
+    assert math.isnan(res["per_second"]["3"]["FDE"])  # no factual given
+
+
+def test_invalid_intruder_and_history_overlap_do_not_count(road):
+    steps = HIST + 20
+    pos = np.zeros((2, steps, 2))  # both parked at the origin, on top of each other
+    valid = np.ones((2, steps), bool)
+    valid[1, HIST:] = False  # the intruder exists only in the history
+    scene = make_scene(road, pos, valid=valid)
+    assert not metrics.ego_collision_steps(scene).any()
+    assert metrics.evaluate_scene(scene)["cr_all_agents"] == 0.0
+    valid[1, HIST + 5] = True  # one rollout step, within the first second
+    res = metrics.evaluate_scene(make_scene(road, pos, valid=valid))
+    assert res["per_second"]["1"]["CR"] == 1.0 and res["cr_non_ego"] == 0.0
+
+
+def test_non_ego_collision_counts_only_in_all_agent_rates(road):
+    steps = HIST + 10
+    pos = np.zeros((3, steps, 2))
+    pos[0, :, 1] = 4.0  # ego alone in the other lane
+    pos[2, :, 0] = 3.0  # agents 1 and 2 overlap by 1 m
+    res = metrics.evaluate_scene(make_scene(road, pos))
+    assert res["cr"] == 0.0 and res["cr_non_ego"] == 1.0 and res["cr_all_agents"] == 1.0
+    assert math.isinf(res["min_ttc"])
+
+
+# ---------------------------------------------------------------------- HBR
+def straight_motion(v0, acc, yaw, steps=HIST + 30):
+    """Positions, yaws and speeds of a car along heading ``yaw`` with constant acceleration."""
+    tau = np.arange(steps) * DT
+    s = v0 * tau + 0.5 * acc * tau**2
+    pos = np.stack([100 + s * math.cos(yaw), s * math.sin(yaw)], -1)
+    return pos, np.full(steps, yaw), v0 + acc * tau
+
+
+def single_car(road, v0, acc, yaw):
+    pos, yaws, speeds = straight_motion(v0, acc, yaw)
+    return make_scene(road, pos[None], yaws=yaws[None], speeds=speeds[None])
+
+
+def test_eastbound_braking_flagged_by_signed_hbr_not_by_paper_formula(road):
+    scene = single_car(road, 20.0, -5.0, 0.0)
+    acc, valid = metrics.longitudinal_acceleration(scene)
+    np.testing.assert_allclose(acc[valid], -5.0, atol=1e-6)
+    assert metrics.hbr_ego(scene) == 1.0
+    assert metrics.hbr_ego(scene, source="speed") == 1.0
+    assert metrics.hbr_all(scene) == 1.0
+    assert metrics.hbr_paper(scene) == 0.0  # ||a|| cos(0) = +5: the paper misses it
+    assert metrics.evaluate_scene(scene)["per_second"]["1"]["HBR"] == 1.0
+
+
+def test_westbound_accelerating_car_flagged_only_by_paper_formula(road):
+    scene = single_car(road, 10.0, 5.0, math.pi)
+    assert metrics.hbr_ego(scene) == 0.0
+    assert metrics.hbr_ego(scene, source="speed") == 0.0
+    assert metrics.hbr_paper(scene) == 1.0  # ||a|| cos(pi) = -5 < -3: a false alarm
+    res = metrics.evaluate_scene(scene)
+    assert res["hbr_ego"] == 0.0 and res["hbr_paper"] == 1.0
+
+
+def test_hbr_all_fraction_ignores_invalid_and_non_vehicles(road):
+    brake, yb, _ = straight_motion(20.0, -5.0, 0.0)
+    cruise, yc, _ = straight_motion(20.0, 0.0, 0.0)
+    lane = np.array([0.0, 4.0])  # m, one lane to the left
+    pos = np.stack([brake, cruise + lane, brake + 2 * lane, brake + 3 * lane])
+    yaws = np.stack([yb, yc, yb, yb])
+    valid = np.ones(pos.shape[:2], bool)
+    valid[2, HIST:] = False  # an invalid vehicle (braking if it were scored)
+    scene = make_scene(
+        road, pos, yaws=yaws, valid=valid, types=["vehicle", "vehicle", "vehicle", "pedestrian"]
+    )
+    assert metrics.hbr_all(scene) == pytest.approx(0.5)
+    assert metrics.evaluate_scene(scene)["hbr_all"] == pytest.approx(0.5)
+
+
+def test_smoothing_removes_a_one_step_position_glitch(road):
+    pos, yaws, speeds = straight_motion(10.0, 0.0, 0.0)
+    pos[HIST + 10, 0] += 0.05  # 5 cm label jitter: second difference of -2 * 0.05 / dt^2
+    scene = make_scene(road, pos[None], yaws=yaws[None], speeds=speeds[None])
+    assert metrics.hbr_ego(scene) == 1.0
+    assert metrics.hbr_ego(scene, smooth=0.5) == 0.0
+    assert metrics.evaluate_scene(scene, smooth=0.5)["hbr_ego"] == 0.0
+
+
+def test_hbr_within_horizon_only(road):
+    cruise, yaws, _ = straight_motion(20.0, 0.0, 0.0, steps=HIST + 50)
+    tau = np.arange(30) * DT
+    cruise[HIST + 20 :, 0] = cruise[HIST + 20, 0] + 20 * tau - 2.5 * tau**2  # brake from 2 s
+    scene = make_scene(road, cruise[None], yaws=yaws[None])
+    res = metrics.evaluate_scene(scene, horizons=(1, 2, 3))
+    assert [res["per_second"][h]["HBR"] for h in ("1", "2", "3")] == [0.0, 0.0, 1.0]
+
+
+# ---------------------------------------------------------------------- ORR
+def test_car_leaving_the_road_known_orr(road):
+    steps = HIST + 100
+    x = 10 + 0.5 * np.arange(steps)
+    pos = np.zeros((4, steps, 2))
+    pos[:, :, 0] = x
+    pos[0, HIST + 50 :, 1] = 20.0  # ego off the road for the second half of the rollout
+    pos[1, :, 1] = 4.0  # on the road throughout
+    pos[2, :, 1] = 50.0  # a pedestrian far off the road: not a vehicle, not scored
+    pos[3, :, 1] = 50.0  # a vehicle off the road only while invalid
+    valid = np.ones((4, steps), bool)
+    valid[3, HIST:] = False
+    types = ["vehicle", "vehicle", "pedestrian", "vehicle"]
+    scene = make_scene(road, pos, valid=valid, types=types)
+    assert metrics.off_road_rate(scene) == pytest.approx(0.25)
+    res = metrics.evaluate_scene(scene)
+    assert res["orr"] == pytest.approx(0.25)
+    assert res["per_second"]["5"]["ORR"] == 0.0
+    assert res["per_second"]["6"]["ORR"] == pytest.approx(10 / 120)
+    assert res["per_second"]["10"]["ORR"] == pytest.approx(0.25)
+
+
+# ---------------------------------------------------------------------- ADE / FDE
+def ade_pair(road):
+    """A factual log and a sim whose non-ego cars are 1 m off it (the ego 5 m: not scored)."""
+    steps = HIST + 100
+    x = np.arange(steps, dtype=float)
+    fac_pos = np.zeros((5, steps, 2))
+    fac_pos[:, :, 0] = x
+    fac_pos[:, :, 1] = [[0.0], [4.0], [8.0], [12.0], [16.0]]
+    factual = make_scene(road, fac_pos, ids=["ego", "c1", "c2", "c3", "c4"])
+    sim_pos = fac_pos.copy()
+    sim_pos[:, HIST:, 1] += [[5.0], [1.0], [1.0], [1.0], [3.0]]
+    valid = np.ones((5, steps), bool)
+    valid[3, HIST:] = False  # c3 vanishes in the sim: ignored, not a 12 m error
+    valid[4, HIST + 15 :] = False  # c4 lives for 1.5 s of the rollout, 3 m off
+    # Rows permuted relative to the factual log: alignment is by id.
+    order = [0, 2, 1, 4, 3]
+    sim = make_scene(
+        road,
+        sim_pos[order],
+        valid=valid[order],
+        types=["vehicle", "vehicle", "vehicle", "vehicle", "vehicle"],
+        ids=[factual.agent_ids[i] for i in order],
+    )
+    return sim, factual
+
+
+def test_ade_fde_of_a_one_metre_offset(road):
+    sim, factual = ade_pair(road)
+    # c4 counts while valid: ADE over agents (1, 1, 3); FDE_1 at step 9 includes it.
+    assert metrics.ade_fde(sim, factual, 1.0) == pytest.approx((5 / 3, 5 / 3))
+    assert metrics.ade_fde(sim, factual, 2.0) == pytest.approx((5 / 3, 1.0))
+    res = metrics.evaluate_scene(sim, factual)
+    for h in range(2, 11):
+        assert res["per_second"][str(h)]["FDE"] == pytest.approx(1.0)
+    one_off = sim.select_agents([0, 1, 2])  # only the cars exactly 1 m off
+    res = metrics.evaluate_scene(one_off, factual)
+    for h in range(1, 11):
+        assert res["per_second"][str(h)]["ADE"] == pytest.approx(1.0)
+        assert res["per_second"][str(h)]["FDE"] == pytest.approx(1.0)
+
+
+def test_ade_nan_without_agents_or_factual_and_missing_ids_raise(road):
+    sim, factual = ade_pair(road)
+    ego_only = sim.select_agents([0])
+    assert all(math.isnan(v) for v in metrics.ade_fde(ego_only, factual, 3.0))
+    res = metrics.evaluate_scene(sim)
+    assert math.isnan(res["per_second"]["1"]["ADE"]) and math.isnan(res["per_second"]["1"]["FDE"])
+    short_factual = factual.select_agents([0, 1, 2])
+    with pytest.raises(ValueError, match=r"c3.*c4|c4.*c3"):
+        metrics.evaluate_scene(sim, short_factual)
+
+
+# ---------------------------------------------------------------------- records and aggregate
+def test_evaluate_scene_record_is_json_and_complete(road):
+    sim, factual = ade_pair(road)
+    res = metrics.evaluate_scene(sim, factual, adversary="c1")
+    text = json.dumps(res)
+    back = json.loads(text)
+    assert set(back) == {
+        "scenario_id",
+        "rollout_s",
+        "adversary_id",
+        "per_second",
+        *metrics.SCENE_KEYS,
+    }
+    assert list(back["per_second"]) == [str(h) for h in range(1, 11)]
+    assert set(back["per_second"]["4"]) == set(metrics.PER_SECOND_KEYS)
+    assert back["rollout_s"] == pytest.approx(10.0)
+    agg = metrics.aggregate([res, back])
+    assert agg["per_second"]["4"]["ADE"] == pytest.approx(res["per_second"]["4"]["ADE"])
+
+
+def test_aggregate_groups_are_means_of_seconds():
+    def record(offset, nan_first=False):
+        per = {}
+        for h in range(1, 11):
+            v = math.nan if (nan_first and h == 1) else h + offset
+            per[str(h)] = {"ADE": v, "FDE": 2 * v, "ORR": 0.0, "HBR": 1.0, "CR": float(h > 5)}
+        return {"per_second": per, "cr": 1.0, "min_ttc": math.inf, "hbr_paper": math.nan}
+
+    agg = metrics.aggregate([record(0), record(2, nan_first=True), record(0.0)])
+    assert agg["num_scenes"] == 3
+    # second 1: NaN ignored -> mean(1, 1); others: mean(h, h + 2, h)
+    assert agg["per_second"]["1"]["ADE"] == pytest.approx(1.0)
+    assert agg["per_second"]["2"]["ADE"] == pytest.approx(8 / 3)
+    means = {h: agg["per_second"][str(h)]["ADE"] for h in range(1, 11)}
+    assert agg["groups"]["1-4s"]["ADE"] == pytest.approx(np.mean([means[h] for h in (1, 2, 3, 4)]))
+    assert agg["groups"]["5-7s"]["ADE"] == pytest.approx(np.mean([means[h] for h in (5, 6, 7)]))
+    assert agg["groups"]["8-10s"]["ADE"] == pytest.approx(np.mean([means[h] for h in (8, 9, 10)]))
+    assert agg["groups"]["5-7s"]["CR"] == pytest.approx(2 / 3)
+    assert agg["overall"]["cr"] == 1.0 and math.isinf(agg["overall"]["min_ttc"])
+    assert math.isnan(agg["overall"]["hbr_paper"])
+    with pytest.raises(ValueError):
+        metrics.aggregate([])

@@ -1,0 +1,399 @@
+"""The ScenarioNet importer: safe unpickling, malformed files, tracks, time base and map.
+
+Every file here is written by the test into ``tmp_path``; nothing reads the shared data.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import shapely
+
+from counterscene_env.scene import Scene, SceneError
+from counterscene_env.scene.scenarionet import (
+    ScenarioNetError,
+    UnsafePickleError,
+    load_scenarionet,
+    read_scenario_description,
+)
+
+T = 41  # 4 s at 10 Hz
+
+
+# ---------------------------------------------------------------------- synthetic scenario
+def _track(kind, xy, vel, heading, valid, length, width, n=T):
+    """A ScenarioNet track with constant box; ``xy``/``vel`` are [n, 2], the rest broadcast."""
+    pos = np.zeros((n, 3))
+    pos[:, :2] = xy
+    return {
+        "type": kind,
+        "state": {
+            "position": pos,
+            "heading": np.broadcast_to(np.asarray(heading, float), (n,)).copy(),
+            "velocity": np.broadcast_to(np.asarray(vel, float), (n, 2)).copy(),
+            "valid": np.broadcast_to(np.asarray(valid, float), (n,)).copy(),
+            "length": np.full((n, 1), length),
+            "width": np.full((n, 1), width),
+            "height": np.full((n, 1), 1.5),
+        },
+        "metadata": {"type": kind},
+    }
+
+
+def _scenario(dt: float = 0.1, n: int = T, links: bool = True) -> dict:
+    """Ego + 2 vehicles + a pedestrian + a cone (+ a never-valid vehicle) on three lanes."""
+    t = np.arange(n) * dt
+    ego_xy = np.stack([-5.0 + 10.0 * t, np.zeros(n)], -1)
+    veh_xy = np.stack([3.0 * t, np.full(n, 3.5)], -1)
+    few = np.arange(n) * dt < 1.0  # valid for the first second only
+    ped_valid = (np.arange(n) * dt >= 1.0) & (np.arange(n) * dt <= 3.0)
+    tracks = {
+        "veh_a": _track("VEHICLE", veh_xy, (3.0, 4.0), 0.0, 1.0, 4.5, 1.9, n),
+        "ego": _track("VEHICLE", ego_xy, (10.0, 0.0), 0.0, 1.0, 1.73, 4.08, n),
+        "veh_b": _track("VEHICLE", np.tile([20.0, 0.0], (n, 1)), (0.0, 0.0), 0.1, few, 4.0, 1.8, n),
+        "ghost": _track("VEHICLE", np.zeros((n, 2)), (0.0, 0.0), 0.0, 0.0, 4.0, 1.8, n),
+        "ped": _track(
+            "PEDESTRIAN", np.tile([10.0, 6.0], (n, 1)), (0.0, -1.2), -1.5, ped_valid, 0.7, 0.6, n
+        ),
+        "cone": _track(
+            "TRAFFIC_CONE", np.tile([30.0, -2.0], (n, 1)), (0.0, 0.0), 0.0, 1.0, 0.4, 0.4, n
+        ),
+    }
+    # Two straight lanes with polygons, one connector without (a left bend), one bike lane.
+    lane1 = np.stack([np.linspace(-10, 50, 61), np.zeros(61), np.zeros(61)], -1)  # (P, 3)
+    lane2 = np.stack([np.linspace(-10, 50, 61), np.full(61, 3.5)], -1)  # (P, 2)
+    ang = np.linspace(-np.pi / 2, 0.0, 20)
+    lane3 = np.stack([50 + 10 * np.cos(ang), 10 + 10 * np.sin(ang)], -1)  # (50,0) -> (60,10)
+    features = {
+        "l1": {
+            "type": "LANE_SURFACE_STREET",
+            "polyline": lane1,
+            "polygon": np.array([[-10, -1.75], [50, -1.75], [50, 1.75], [-10, 1.75]], float),
+        },
+        "l2": {
+            "type": "LANE_SURFACE_STREET",
+            "polyline": lane2.tolist(),  # nuScenes files store plain lists
+            "polygon": [[-10, 1.75], [50, 1.75], [50, 5.25], [-10, 5.25]],
+            "width": np.full((61, 2), 1.6),  # Waymo style: left/right half widths
+        },
+        "l3": {"type": "LANE_SURFACE_STREET", "polyline": lane3},
+        "bike": {"type": "LANE_BIKE_LANE", "polyline": np.array([[0.0, 40.0], [10.0, 40.0]])},
+        "line": {"type": "ROAD_LINE_BROKEN_SINGLE_WHITE", "polyline": lane2[:, :2] - [0, 1.75]},
+    }
+    if links:
+        features["l1"]["exit_lanes"] = ["l3"]
+        features["l3"]["entry_lanes"] = ["l1"]
+        features["l2"]["exit_lanes"] = []
+    return {
+        "id": "synthetic-1",
+        "version": "test",
+        "length": n,
+        "metadata": {
+            "dataset": "unit-test",
+            "scenario_id": "synthetic-1",
+            "sample_rate": dt,
+            "ts": t,
+            "sdc_id": "ego",
+            "map": "none",
+        },
+        "tracks": tracks,
+        "dynamic_map_states": {},
+        "map_features": features,
+    }
+
+
+def _write(tmp_path: Path, obj, name: str = "scene.pkl", protocol: int = 4) -> Path:
+    path = tmp_path / name
+    with path.open("wb") as f:
+        pickle.dump(obj, f, protocol=protocol)
+    return path
+
+
+def _node_after(road, start_xy):
+    """The end node of the lane starting at ``start_xy`` (and the lane's start node)."""
+    for _from, to_dict in road.network.graph.items():
+        for _to, lanes in to_dict.items():
+            for lane in lanes:
+                if np.allclose(lane.position(0.0, 0.0), start_xy, atol=1e-6):
+                    return _from, _to
+    raise AssertionError(f"no lane starts at {start_xy}")
+
+
+# ---------------------------------------------------------------------- the happy path
+def test_synthetic_scenario_loads_to_expected_scene(tmp_path):
+    scene = load_scenarionet(_write(tmp_path, _scenario()))
+    assert isinstance(scene, Scene)
+    assert scene.scenario_id == "synthetic-1"
+    assert scene.dt == pytest.approx(0.1)
+    assert scene.current_index == 30
+    # ghost (never valid) is dropped; ego first, the others in file order
+    assert scene.agent_ids.tolist() == ["ego", "veh_a", "veh_b", "ped", "cone"]
+    assert scene.agent_types.tolist() == ["vehicle", "vehicle", "vehicle", "pedestrian", "other"]
+    assert scene.ego_index == 0
+    assert scene.positions.shape == (5, T, 2)
+    assert scene.yaws.shape == scene.speeds.shape == scene.valid.shape == (5, T)
+    assert scene.extents.shape == (5, 2)
+    # speeds: norm of the velocity; states at 10 Hz as written
+    np.testing.assert_allclose(scene.speeds[0], 10.0)
+    np.testing.assert_allclose(scene.speeds[1], 5.0)
+    np.testing.assert_allclose(scene.positions[0, :, 0], -5.0 + np.arange(T))
+    assert scene.valid[2].sum() == 10 and not scene.valid[2, 10:].any()
+    assert scene.valid[3].sum() == 21
+    np.testing.assert_allclose(scene.yaws[3][scene.valid[3]], -1.5)
+    # the nuScenes ego box (1.73 x 4.08) is swapped back; other boxes untouched
+    np.testing.assert_allclose(scene.extents[0], [4.08, 1.73])
+    np.testing.assert_allclose(scene.extents[1], [4.5, 1.9])
+    np.testing.assert_allclose(scene.extents[4], [0.4, 0.4])
+    assert scene.metadata["swapped_extents"] == ["ego"]
+    assert scene.metadata["num_tracks"] == {"vehicle": 3, "pedestrian": 1, "cyclist": 0, "other": 1}
+    assert scene.metadata["dropped_tracks"] == 1
+    assert scene.metadata["dataset"] == "unit-test"
+    assert scene.metadata["source_file"] == "scene.pkl"
+
+
+def test_synthetic_map(tmp_path):
+    road = load_scenarionet(_write(tmp_path, _scenario())).road
+    assert len(road.lane_centerlines) == 3  # the bike lane and the road line are not lanes
+    # widths: polygon area / length, the width field (1.6 + 1.6), the 3.5 m default
+    np.testing.assert_allclose(road.lane_widths, [3.5, 3.2, 3.5])
+    pts = np.concatenate(road.lane_centerlines)
+    assert shapely.intersects_xy(road.drivable_area, pts[:, 0], pts[:, 1]).all()
+    assert not shapely.intersects_xy(road.drivable_area, 5.0, 40.0)  # bike lane left out
+    assert not shapely.intersects_xy(road.drivable_area, 20.0, -3.0)  # beyond the lane polygon
+    # exit_lanes: lane 1 ends where the connector starts
+    _, end1 = _node_after(road, [-10.0, 0.0])
+    start3, _ = _node_after(road, [50.0, 0.0])
+    assert end1 == start3
+    _, end2 = _node_after(road, [-10.0, 3.5])
+    assert end2 != start3
+
+
+def test_connectivity_from_geometry_without_links(tmp_path):
+    road = load_scenarionet(_write(tmp_path, _scenario(links=False))).road
+    _, end1 = _node_after(road, [-10.0, 0.0])
+    start3, _ = _node_after(road, [50.0, 0.0])
+    assert end1 == start3
+
+
+def _ring(x0, y0, x1, y1, w=3.5):
+    """Four lanes (with polygons) around the box [x0, x1] x [y0, y1], leaving it a hole."""
+    h = w / 2
+    sides = [
+        ([x0 - h, y0], [x1 + h, y0]),
+        ([x1, y0 - h], [x1, y1 + h]),
+        ([x1 + h, y1], [x0 - h, y1]),
+        ([x0, y1 + h], [x0, y0 - h]),
+    ]
+    out = {}
+    for k, (a, b) in enumerate(sides):
+        line = np.array([a, b], float)
+        poly = shapely.LineString(line).buffer(h, cap_style="flat")
+        out[f"r{x0}_{k}"] = {
+            "type": "LANE_SURFACE_STREET",
+            "polyline": line,
+            "polygon": shapely.get_coordinates(poly.exterior),
+        }
+    return out
+
+
+def test_small_holes_filled_large_kept_and_driveways_added(tmp_path):
+    sd = _scenario()
+    sd["map_features"].update(_ring(100, 0, 106, 6))  # 2.5 x 2.5 m hole: filled
+    sd["map_features"].update(_ring(200, 0, 230, 30))  # 26.5 x 26.5 m block: kept
+    sd["map_features"]["dw"] = {
+        "type": "DRIVEWAY",
+        "polygon": np.array([[0, -20], [10, -20], [10, -10], [0, -10]], float),
+    }
+    area = load_scenarionet(_write(tmp_path, sd)).road.drivable_area
+    assert shapely.intersects_xy(area, 103.0, 3.0)
+    assert not shapely.intersects_xy(area, 215.0, 15.0)
+    assert shapely.intersects_xy(area, 5.0, -15.0)
+
+
+@pytest.mark.parametrize("protocol", [3, 4, 5])
+def test_pickle_protocols(tmp_path, protocol):
+    scene = load_scenarionet(_write(tmp_path, _scenario(), protocol=protocol))
+    assert scene.num_agents == 5
+
+
+def test_current_index_argument(tmp_path):
+    path = _write(tmp_path, _scenario())
+    assert load_scenarionet(path, current_index=10).current_index == 10
+    with pytest.raises(ScenarioNetError, match="current_index"):
+        load_scenarionet(path, current_index=T)
+
+
+# ---------------------------------------------------------------------- time base
+def test_20hz_is_subsampled_to_10hz(tmp_path):
+    ref = load_scenarionet(_write(tmp_path, _scenario(), "ref.pkl"))
+    fast = load_scenarionet(_write(tmp_path, _scenario(dt=0.05, n=2 * T - 1), "fast.pkl"))
+    assert fast.dt == pytest.approx(0.1)
+    assert fast.num_steps == T
+    assert fast.metadata["subsample"] == 2
+    np.testing.assert_allclose(fast.positions, ref.positions, atol=1e-9)
+    np.testing.assert_array_equal(fast.valid, ref.valid)
+    np.testing.assert_allclose(fast.speeds, ref.speeds)
+
+
+def test_sample_rate_from_ts_and_bad_rates(tmp_path):
+    sd = _scenario()
+    del sd["metadata"]["sample_rate"]
+    assert load_scenarionet(_write(tmp_path, sd, "ts.pkl")).num_steps == T
+    sd = _scenario(dt=0.03)
+    with pytest.raises(ScenarioNetError, match="sample_rate"):
+        load_scenarionet(_write(tmp_path, sd, "odd.pkl"))
+    sd = _scenario(dt=0.2)
+    with pytest.raises(ScenarioNetError, match="sample_rate"):
+        load_scenarionet(_write(tmp_path, sd, "slow.pkl"))
+
+
+# ---------------------------------------------------------------------- hostile pickles
+class _Exploit:
+    def __init__(self, func, args):
+        self.func, self.args = func, args
+
+    def __reduce__(self):
+        return self.func, self.args
+
+
+def test_os_system_payload_is_refused_and_never_runs(tmp_path):
+    marker = tmp_path / "pwned"
+    path = _write(tmp_path, _Exploit(os.system, (f"touch {marker}",)), "evil.pkl")
+    with pytest.raises(UnsafePickleError, match="system") as info:
+        load_scenarionet(path)
+    assert isinstance(info.value, SceneError)
+    assert "evil.pkl" in str(info.value)
+    assert not marker.exists()
+
+
+def test_payload_hidden_inside_a_valid_scenario_is_refused(tmp_path):
+    marker = tmp_path / "pwned"
+    sd = _scenario()
+    sd["metadata"]["extra"] = _Exploit(os.system, (f"touch {marker}",))
+    with pytest.raises(UnsafePickleError):
+        load_scenarionet(_write(tmp_path, sd, "evil.pkl"))
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize(
+    ("func", "args", "name"),
+    [
+        (eval, ("1 + 1",), "builtins.eval"),
+        (subprocess.Popen, (["true"],), "subprocess.Popen"),
+        (__import__, ("os",), "builtins.__import__"),
+    ],
+)
+def test_other_dangerous_globals_are_refused(tmp_path, func, args, name):
+    path = _write(tmp_path, {"metadata": _Exploit(func, args)}, "evil.pkl")
+    with pytest.raises(UnsafePickleError, match=name.replace(".", r"\.")):
+        read_scenario_description(path)
+
+
+def test_persistent_ids_are_refused(tmp_path):
+    import io
+
+    class _P(pickle.Pickler):
+        def persistent_id(self, obj):
+            return "ref-1" if obj == "secret" else None
+
+    buf = io.BytesIO()
+    _P(buf, protocol=4).dump({"metadata": "secret"})
+    path = tmp_path / "pid.pkl"
+    path.write_bytes(buf.getvalue())
+    with pytest.raises(UnsafePickleError, match="persistent"):
+        load_scenarionet(path)
+
+
+def test_build_cannot_alter_an_allowed_helper(tmp_path):
+    from numpy._core import numeric
+
+    before = numeric._frombuffer.__defaults__
+    # numpy._core.numeric._frombuffer, then BUILD with slot state {"__defaults__": (1,)}
+    payload = (
+        b"\x80\x04"
+        + b"\x8c\x13numpy._core.numeric\x8c\x0b_frombuffer\x93"
+        + b"N}\x8c\x0c__defaults__K\x01\x85s\x86b."
+    )
+    path = tmp_path / "build.pkl"
+    path.write_bytes(payload)
+    with pytest.raises(SceneError):
+        load_scenarionet(path)
+    assert numeric._frombuffer.__defaults__ == before
+
+
+# ---------------------------------------------------------------------- malformed files
+def test_truncated_file(tmp_path):
+    path = _write(tmp_path, _scenario())
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ScenarioNetError, match=r"scene\.pkl.*not a readable pickle"):
+        load_scenarionet(path)
+
+
+def test_not_a_pickle(tmp_path):
+    path = tmp_path / "notes.pkl"
+    path.write_text("just some text\n")
+    with pytest.raises(ScenarioNetError, match=r"notes\.pkl.*not a readable pickle"):
+        load_scenarionet(path)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(ScenarioNetError, match="cannot read"):
+        load_scenarionet(tmp_path / "absent.pkl")
+
+
+def test_not_a_dict(tmp_path):
+    path = _write(tmp_path, [1, 2, 3], "list.pkl")
+    with pytest.raises(ScenarioNetError, match=r"list\.pkl.*dict.*list"):
+        load_scenarionet(path)
+
+
+@pytest.mark.parametrize("field", ["tracks", "metadata", "map_features"])
+def test_missing_top_level_field(tmp_path, field):
+    sd = _scenario()
+    del sd[field]
+    with pytest.raises(ScenarioNetError, match=f"scene.pkl.*{field}"):
+        load_scenarionet(_write(tmp_path, sd))
+
+
+def test_missing_sdc_id(tmp_path):
+    sd = _scenario()
+    del sd["metadata"]["sdc_id"]
+    with pytest.raises(ScenarioNetError, match="sdc_id"):
+        load_scenarionet(_write(tmp_path, sd))
+    sd["metadata"]["sdc_id"] = "nobody"
+    with pytest.raises(ScenarioNetError, match="'nobody'"):
+        load_scenarionet(_write(tmp_path, sd))
+
+
+def test_bad_array_shapes(tmp_path):
+    sd = _scenario()
+    sd["tracks"]["veh_a"]["state"]["position"] = np.zeros((T, 4))
+    with pytest.raises(ScenarioNetError, match=r"veh_a.*position.*\(T, 2\|3\)"):
+        load_scenarionet(_write(tmp_path, sd))
+    sd = _scenario()
+    sd["tracks"]["ped"]["state"]["heading"] = np.zeros(T - 1)
+    with pytest.raises(ScenarioNetError, match=r"ped.*heading"):
+        load_scenarionet(_write(tmp_path, sd))
+    sd = _scenario()
+    del sd["tracks"]["cone"]["state"]["velocity"]
+    with pytest.raises(ScenarioNetError, match=r"cone.*velocity"):
+        load_scenarionet(_write(tmp_path, sd))
+    sd = _scenario()
+    sd["map_features"]["l1"]["polyline"] = np.zeros((5, 4))
+    with pytest.raises(ScenarioNetError, match=r"l1.*polyline"):
+        load_scenarionet(_write(tmp_path, sd))
+
+
+def test_tracks_of_different_lengths(tmp_path):
+    sd = _scenario()
+    sd["tracks"]["cone"] = _track(
+        "TRAFFIC_CONE", np.zeros((T + 1, 2)), (0, 0), 0, 1, 0.4, 0.4, T + 1
+    )
+    with pytest.raises(ScenarioNetError, match=r"cone.*steps"):
+        load_scenarionet(_write(tmp_path, sd))

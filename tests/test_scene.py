@@ -1,0 +1,121 @@
+"""The scene contract: validation, slicing, nearest-K selection, the road map."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import shapely
+from conftest import make_scene, straight_road
+
+from counterscene_env.scene import SceneError
+from counterscene_env.scene.road import RoadMap, network_from_json, network_to_json
+
+
+def _line_scene(n=4, t=50):
+    # Agent i sits at x = 10 i on y = 0, moving +x at 1 m per step.
+    pos = np.zeros((n, t, 2))
+    pos[..., 0] = np.arange(n)[:, None] * 10.0 + np.arange(t)[None, :]
+    return make_scene(pos, speeds=np.full((n, t), 10.0), current_index=30)
+
+
+def test_validation_names_the_bad_field():
+    with pytest.raises(SceneError, match="yaws"):
+        make_scene(np.zeros((2, 5, 2)), yaws=np.zeros((2, 4)))
+    with pytest.raises(SceneError, match="ego_index"):
+        make_scene(np.zeros((2, 5, 2)), ego_index=2)
+    with pytest.raises(SceneError, match="non-finite"):
+        make_scene(np.full((2, 5, 2), np.nan))
+    with pytest.raises(SceneError, match="extents"):
+        make_scene(np.zeros((2, 5, 2)), extents=np.zeros((2, 2)))
+    with pytest.raises(SceneError, match="agent types"):
+        make_scene(np.zeros((2, 5, 2)), agent_types=np.array(["vehicle", "tank"]))
+    with pytest.raises(SceneError, match="ego must be a vehicle"):
+        make_scene(np.zeros((2, 5, 2)), agent_types=np.array(["pedestrian", "vehicle"]))
+
+
+def test_scene_owns_its_arrays():
+    pos = np.zeros((2, 5, 2))
+    valid = np.ones((2, 5), bool)
+    valid[1, 2] = False
+    pos[1, 2] = np.nan
+    scene = make_scene(pos, valid=valid)
+    assert np.isnan(pos[1, 2]).all(), "the caller's array is not modified"
+    pos[0, 0] = 99.0
+    assert scene.positions[0, 0, 0] == 0.0, "later changes by the caller do not leak in"
+
+
+def test_nan_at_invalid_steps_is_allowed_and_zeroed():
+    pos = np.zeros((2, 5, 2))
+    pos[1, 3:] = np.nan
+    valid = np.ones((2, 5), bool)
+    valid[1, 3:] = False
+    scene = make_scene(pos, valid=valid)
+    assert np.isfinite(scene.positions).all()
+
+
+def test_history_and_future_windows():
+    scene = _line_scene()
+    hist = scene.history(31)
+    assert hist.num_steps == 31 and hist.current_index == 30
+    np.testing.assert_allclose(hist.positions[0, -1], scene.positions[0, 30])
+    fut = scene.future(10)
+    assert fut.num_steps == 10
+    np.testing.assert_allclose(fut.positions[0, 0], scene.positions[0, 31])
+    # A window that would start before the log is shorter, not padded with invented frames.
+    assert scene.history(31, t=5).num_steps == 6
+    with pytest.raises(SceneError):
+        scene.future(t=scene.num_steps - 1)
+
+
+def test_nearest_k_puts_ego_first_then_by_distance():
+    scene = _line_scene(n=5).replace(ego_index=2)
+    idx = scene.nearest_indices(3)
+    assert idx[0] == 2 and sorted(idx[1:].tolist()) == [1, 3]
+    sub = scene.nearest(3)
+    assert sub.num_agents == 3 and sub.ego_index == 0
+    assert sub.agent_ids[0] == scene.agent_ids[2]
+
+
+def test_nearest_skips_invalid_and_other_types():
+    valid = np.ones((4, 50), bool)
+    valid[1, 30] = False
+    scene = _line_scene().replace(
+        valid=valid, agent_types=np.array(["vehicle", "vehicle", "pedestrian", "vehicle"])
+    )
+    assert scene.nearest_indices(4, types=("vehicle",)).tolist() == [0, 3]
+
+
+def test_road_map_from_network_clips_and_covers_lanes():
+    road = straight_road(lanes=2, length=1000.0)
+    clipped = RoadMap.from_network(road.network, bounds=(0, -10, 100, 20))
+    assert len(clipped.lane_centerlines) == 2
+    assert clipped.lane_centerlines[0][:, 0].max() <= 100.0 + 1e-9
+    # Lane centres are on the road, a point 10 m beside it is not.
+    assert shapely.intersects_xy(clipped.drivable_area, 50.0, 4.0)
+    assert not shapely.intersects_xy(clipped.drivable_area, 50.0, 14.0)
+
+
+def test_road_map_from_centerlines_builds_a_connected_network():
+    a = np.array([[0.0, 0.0], [50.0, 0.0]])
+    b = np.array([[50.0, 0.0], [100.0, 20.0]])
+    road = RoadMap.from_centerlines([a, b], [3.5, 3.5], successors=[[1], []])
+    lanes = road.network.lanes_list()
+    assert len(lanes) == 2
+    (start_a, end_a, _), (start_b, _, _) = (
+        road.network.get_closest_lane_index(p) for p in ([25.0, 0.0], [75.0, 10.0])
+    )
+    assert end_a == start_b  # lane a flows into lane b
+    assert road.network.next_lane((start_a, end_a, 0), position=np.array([49.0, 0.0]))[0] == start_b
+    assert shapely.intersects_xy(road.drivable_area, 25.0, 1.5)
+    assert not shapely.intersects_xy(road.drivable_area, 25.0, 2.5)
+
+
+def test_network_json_round_trip_and_refuses_foreign_classes(generated):
+    net = generated["roundabout"].road.network
+    back = network_from_json(network_to_json(net))
+    assert len(back.lanes_list()) == len(net.lanes_list())
+    for a, b in zip(net.lanes_list(), back.lanes_list(), strict=True):
+        np.testing.assert_allclose(a.position(3.0, 1.0), b.position(3.0, 1.0))
+    evil = '[{"from": "a", "to": "b", "class": "os.system", "config": {}}]'
+    with pytest.raises(ValueError, match="unknown lane class"):
+        network_from_json(evil)
