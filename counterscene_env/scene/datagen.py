@@ -57,9 +57,10 @@ def generate_dataset(
         "generator_version": GENERATOR_VERSION,
     }
 
-    def block_args(k: int) -> tuple:
+    def block_args(k: int, limit: int) -> tuple:
         lo = seed + k * shard_size
-        return (_generate_block, str(out), k, scenario, list(range(lo, lo + shard_size)), duration)
+        seeds = list(range(lo, lo + shard_size))
+        return (_generate_block, str(out), k, scenario, seeds, duration, limit)
 
     return _build(Path(out), params, scenes, block_args, None, workers, progress)
 
@@ -83,7 +84,7 @@ def convert_scenarionet(
     }
     blocks = [files[i : i + shard_size] for i in range(0, len(files), shard_size)]
 
-    def block_args(k: int) -> tuple:
+    def block_args(k: int, limit: int) -> tuple:
         return (_convert_block, str(out), k, blocks[k])
 
     return _build(Path(out), params, None, block_args, len(blocks), workers, progress)
@@ -119,7 +120,7 @@ def _build(
     out: Path,
     params: dict,
     target: int | None,
-    block_args: Callable[[int], tuple],
+    block_args: Callable[[int, int], tuple],
     num_blocks: int | None,
     workers: int,
     progress: bool,
@@ -167,7 +168,14 @@ def _build(
                     )
                     if hoped >= target and pending:
                         break
-                fn, *args = block_args(next_block)
+                # A block never needs more scenes than are still missing before it.
+                before = [done[j]["scenes"] for j in range(next_block) if j in done]
+                limit = (
+                    target - sum(before)
+                    if target is not None and len(before) == next_block
+                    else target
+                )
+                fn, *args = block_args(next_block, limit)
                 if pool is None:
                     fut: Future = Future()
                     fut.set_result(fn(*args))
@@ -257,17 +265,25 @@ def _write_manifest(out: Path, manifest: dict, done: dict[int, dict], target: in
 
 
 # ---------------------------------------------------------------------- block workers
-def _generate_block(out: str, k: int, scenario: str, seeds: list[int], duration: float) -> dict:
+def _generate_block(
+    out: str, k: int, scenario: str, seeds: list[int], duration: float, limit: int
+) -> dict:
+    """Record the seeds of one block in order, stopping once ``limit`` scenes are safe."""
     from counterscene_env.scene.highway import GeneratorConfig, RejectedScene, record
 
     cfg = GeneratorConfig(duration=duration)
     scenes, rejected = [], []
     for s in seeds:
+        if len(scenes) >= limit:
+            break
         try:
             scenes.append(record(scenario, s, cfg))
         except RejectedScene as exc:
             rejected.append([s, str(exc)])
-    return _save_block(out, k, scenes, rejected, [int(sc.metadata["seed"]) for sc in scenes])
+    entry = _save_block(out, k, scenes, rejected, [int(sc.metadata["seed"]) for sc in scenes])
+    # A block that stopped early does not cover its seeds: a larger rerun must redo it.
+    entry["truncated"] = len(scenes) + len(rejected) < len(seeds)
+    return entry
 
 
 def _convert_block(out: str, k: int, files: list[str]) -> dict:

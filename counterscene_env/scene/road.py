@@ -28,10 +28,12 @@ from highway_env.road.road import RoadNetwork
 #: Spacing of the sampled centre lines and lane-surface outlines, m.
 SAMPLE_SPACING = 1.0
 
-#: Gaps between lane surfaces narrower than twice this are paved over (morphological closing),
-#: m. highway-env lanes meet at junctions with small wedge-shaped gaps (ring to exit of the
-#: roundabout, turn lanes at the intersection) that its vehicles legally drive across.
-JUNCTION_FILL = 2.0
+#: Radius of the morphological closing (grow, then shrink) applied to the union of lane
+#: surfaces of a generated road, m. highway-env lanes meet at junctions with wedge-shaped gaps
+#: (roundabout ring to entries and exits, turn lanes at the intersection) that its vehicles
+#: legally drive across; the closing paves gaps narrower than twice this and rounds concave
+#: corners like a kerb radius, but leaves straight road edges where they are.
+JUNCTION_FILL = 4.0
 
 
 @dataclass(eq=False)
@@ -93,10 +95,8 @@ class RoadMap:
                 centerlines.append(piece)
                 widths.append(width)
         area = shapely.union_all(surfaces) if surfaces else shapely.Polygon()
-        # Closing (grow then shrink) fills junction gaps but leaves the outer road edge in place.
-        area = area.buffer(JUNCTION_FILL, join_style="mitre").buffer(
-            -JUNCTION_FILL + 0.01, join_style="mitre"
-        )
+        # Closing (grow then shrink) paves junction gaps, keeps the outer road edge in place.
+        area = area.buffer(JUNCTION_FILL).buffer(-JUNCTION_FILL)
         if box is not None:
             area = area.intersection(box)
         return cls(network, area, centerlines, np.array(widths))

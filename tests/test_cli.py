@@ -1,0 +1,42 @@
+"""The counterscene command: help for every subcommand, generate then inspect."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from counterscene_env.cli import main
+
+
+def _run(*args):
+    return subprocess.run([sys.executable, "-m", "counterscene_env.cli", *args], capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("sub", [[], ["generate"], ["inspect"]])
+def test_help_for_every_subcommand(sub):
+    out = _run(*sub, "--help")
+    assert out.returncode == 0 and "usage: counterscene" in out.stdout
+
+
+def test_generate_then_inspect_json(tmp_path, capsys):
+    out = tmp_path / "d"
+    assert main(["generate", "--scenario", "roundabout", "--scenes", "2", "--seed", "3", "--out", str(out), "--quiet"]) == 0
+    assert "2 scenes" in capsys.readouterr().out
+    assert main(["inspect", str(out), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["summary"]["scenes"] == 2
+    assert report["summary"]["cr"]["max"] == 0.0
+    assert {r["scenario_id"] for r in report["scenes"]} == {"roundabout/seed=3", "roundabout/seed=4"}
+
+
+def test_errors_are_one_clear_line(tmp_path):
+    out = _run("inspect", str(tmp_path / "nothing"))
+    assert out.returncode == 1
+    assert "error:" in out.stderr and "Traceback" not in out.stderr
+    bad = tmp_path / "bad.pkl"
+    bad.write_bytes(b"not a pickle at all")
+    out = _run("inspect", str(bad))
+    assert out.returncode == 1 and bad.name in out.stderr and "Traceback" not in out.stderr

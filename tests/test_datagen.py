@@ -1,0 +1,78 @@
+"""Dataset directories: the first N safe seeds, resumable, the same with any worker count."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from counterscene_env.scene import load_scenes
+from counterscene_env.scene.datagen import generate_dataset, read_manifest, shard_paths
+from counterscene_env.scene.shards import ShardError
+
+
+def _seeds(directory):
+    return [s for shard in read_manifest(directory)["shards"] for s in shard["seeds"]]
+
+
+@pytest.mark.slow
+def test_first_n_safe_seeds_skipping_rejected(tmp_path):
+    m = generate_dataset(tmp_path / "d", "intersection", scenes=4, seed=0, shard_size=2, progress=False)
+    # Intersection seed 0 is an unsafe log (see test_highway): it is listed, and replaced.
+    assert m["scenes"] == 4 and _seeds(tmp_path / "d") == [1, 2, 3, 5]
+    assert [r[0] for s in m["shards"] for r in s["rejected"]] == [0, 4]
+    scenes = [sc for p in shard_paths(tmp_path / "d") for sc in load_scenes(p)]
+    assert [sc.metadata["seed"] for sc in scenes] == [1, 2, 3, 5]
+    assert m["format"] == "counterscene-dataset" and m["scenario"] == "intersection"
+
+
+@pytest.mark.slow
+def test_resume_skips_finished_shards_and_workers_do_not_change_the_data(tmp_path):
+    out = tmp_path / "d"
+    generate_dataset(out, "merge", scenes=3, seed=10, shard_size=1, progress=False)
+    first = (out / "shard-00000.npz").stat().st_mtime_ns
+    # Simulate an interruption: the last shard is lost and the manifest forgets it.
+    (out / "shard-00002.npz").unlink()
+    manifest = json.loads((out / "manifest.json").read_text())
+    manifest["shards"] = manifest["shards"][:2]
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    generate_dataset(out, "merge", scenes=3, seed=10, shard_size=1, progress=False)
+    assert (out / "shard-00000.npz").stat().st_mtime_ns == first, "finished shards are not redone"
+    assert _seeds(out) == [10, 11, 12]
+
+    parallel = tmp_path / "p"
+    generate_dataset(parallel, "merge", scenes=3, seed=10, shard_size=1, workers=2, progress=False)
+    assert _seeds(parallel) == [10, 11, 12]
+    a = [s for p in shard_paths(out) for s in load_scenes(p)]
+    b = [s for p in shard_paths(parallel) for s in load_scenes(p)]
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x.positions, y.positions)
+
+
+def test_a_directory_of_another_dataset_is_not_overwritten(tmp_path):
+    out = tmp_path / "d"
+    generate_dataset(out, "merge", scenes=1, seed=0, shard_size=1, progress=False)
+    with pytest.raises(ValueError, match="different dataset"):
+        generate_dataset(out, "roundabout", scenes=1, seed=0, shard_size=1, progress=False)
+
+
+def test_manifest_errors(tmp_path):
+    with pytest.raises(ShardError, match="no manifest.json"):
+        read_manifest(tmp_path)
+    (tmp_path / "manifest.json").write_text('{"format": "counterscene-dataset", "version": 99}')
+    with pytest.raises(ShardError, match="newer"):
+        read_manifest(tmp_path)
+    (tmp_path / "manifest.json").write_text("{not json")
+    with pytest.raises(ShardError, match="corrupt manifest"):
+        read_manifest(tmp_path)
+
+
+def test_a_larger_rerun_extends_the_dataset_like_a_fresh_run(tmp_path):
+    small = tmp_path / "small"
+    generate_dataset(small, "merge", scenes=2, seed=0, shard_size=5, progress=False)
+    assert _seeds(small) == [0, 1], "a block stops once it has the scenes asked for"
+    generate_dataset(small, "merge", scenes=3, seed=0, shard_size=5, progress=False)
+    fresh = tmp_path / "fresh"
+    generate_dataset(fresh, "merge", scenes=3, seed=0, shard_size=5, progress=False)
+    assert _seeds(small) == _seeds(fresh) == [0, 1, 2]

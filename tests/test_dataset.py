@@ -1,0 +1,85 @@
+"""Training windows: fixed shapes, the ego-centred frame, padding and validity."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from conftest import make_scene
+
+from counterscene_env.scene import save_scenes
+from counterscene_env.scene.dataset import SceneWindowDataset, WindowConfig
+
+CFG = WindowConfig(history_steps=11, future_steps=20, num_agents=4, num_lanes=6, lane_points=5, stride=5)
+
+
+def _northbound_scene():
+    # Ego drives north (+y) at 10 m/s from (100, 0); agent 1 is 8 m ahead of it; agent 2 is
+    # absent until step 20; agent 3 is 200 m away. 60 steps.
+    t = np.arange(60) * 0.1
+    pos = np.zeros((4, 60, 2))
+    pos[0] = np.stack([np.full_like(t, 100.0), 10 * t], -1)
+    pos[1] = pos[0] + [0.0, 8.0]
+    pos[2] = pos[0] + [3.0, -5.0]
+    pos[3] = pos[0] + [200.0, 0.0]
+    valid = np.ones((4, 60), bool)
+    valid[2, :20] = False
+    return make_scene(
+        pos, yaws=np.full((4, 60), np.pi / 2), speeds=np.full((4, 60), 10.0), valid=valid
+    )
+
+
+def test_window_shapes_and_dtypes(generated):
+    ds = SceneWindowDataset(list(generated.values()))
+    item = ds[0]
+    c = ds.config
+    assert item["history"].shape == (c.num_agents, c.history_steps, 4)
+    assert item["future"].shape == (c.num_agents, c.future_steps, 4)
+    assert item["map"].shape == (c.num_lanes, c.lane_points, 2)
+    assert item["history"].dtype == torch.float32 and item["history_valid"].dtype == torch.bool
+    # 131-step scenes with 31 + 52 frames: t0 = 30, 40, ..., 70 -> 5 windows per scene.
+    assert len(ds) == 5 * len(generated)
+    batch = torch.utils.data.default_collate([ds[i] for i in range(3)])
+    assert batch["history"].shape[0] == 3
+    for item in (ds[i] for i in range(len(ds))):
+        assert torch.isfinite(item["history"]).all() and torch.isfinite(item["map"]).all()
+
+
+def test_ego_frame_padding_and_validity():
+    ds = SceneWindowDataset([_northbound_scene()], CFG)
+    assert [t0 for _, t0 in ds.index] == [10, 15, 20, 25, 30, 35]
+    w = ds.window(0, 10)
+    # The ego is at the origin heading +x at t0; 1 s earlier it was 10 m behind.
+    np.testing.assert_allclose(w["history"][0, -1], [0, 0, 0, 10], atol=1e-5)
+    np.testing.assert_allclose(w["history"][0, 0, :2], [-10, 0], atol=1e-5)
+    np.testing.assert_allclose(w["future"][0, 9, :2], [10, 0], atol=1e-5)
+    # Agent 1 (8 m north in the world) is 8 m straight ahead; agent 2 is absent at t0 and so
+    # not selected; the far agent 3 comes next; the fourth slot is padding.
+    np.testing.assert_allclose(w["history"][1, -1, :2], [8, 0], atol=1e-5)
+    assert w["agent_valid"].tolist() == [True, True, True, False]
+    np.testing.assert_allclose(w["history"][2, -1, :2], [0, -200], atol=1e-4)
+    assert not w["history_valid"][3].any() and not w["history"][3].any()
+    np.testing.assert_allclose(w["origin"], [100, 10, np.pi / 2])
+    # Lanes of the road run along world +x, i.e. along ego -y; only those within 60 m are used.
+    lanes = w["map"][w["map_valid"]]
+    assert len(lanes) > 0
+    direction = lanes[:, -1] - lanes[:, 0]
+    assert np.allclose(direction[:, 0], 0, atol=1e-4) and (direction[:, 1] < 0).all()
+    assert (np.linalg.norm(lanes, axis=-1).min(axis=1) <= CFG.map_radius + 1e-4).all()
+
+
+def test_agent_appearing_later_is_masked_until_it_appears():
+    ds = SceneWindowDataset([_northbound_scene()], CFG)
+    w = ds.window(0, 25)
+    row = 1 + int(np.argmin(np.linalg.norm(w["history"][1:3, -1, :2] - [-5, -3], axis=-1)))
+    # Agent 2 appears at step 20: history frames 15..25 -> the first 5 are invalid.
+    assert w["history_valid"][row].tolist() == [False] * 5 + [True] * 6
+    assert not w["history"][row, :5].any()
+
+
+def test_loads_from_shards_and_dataset_dirs(tmp_path, generated):
+    path = save_scenes([generated["merge"]], tmp_path / "s.npz")
+    ds = SceneWindowDataset(path)
+    assert len(ds) == 5
+    with pytest.raises(Exception, match="no such shard"):
+        SceneWindowDataset(tmp_path / "missing.npz")
