@@ -149,39 +149,11 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
             "max": float(np.nanmax(v)),
         }
 
-    summary = {"scenes": len(rows)} | {
-        k: stat(k)
-        for k in (
-            "agents",
-            "vehicles",
-            "duration_s",
-            "lanes",
-            "time_s",
-            "cr",
-            "cr_all_agents",
-            "orr",
-            "hbr_ego",
-            "hbr_all",
-            "hbr_paper",
-        )
-    }
+    summary = {"scenes": len(rows)} | {k: stat(k) for k in _INSPECT_COLUMNS[1:] if k != "steps"}
     if args.json:
         print(json.dumps(_finite({"summary": summary, "scenes": rows})))
         return 0
-    cols = [
-        "scenario_id",
-        "agents",
-        "vehicles",
-        "steps",
-        "lanes",
-        "time_s",
-        "cr",
-        "cr_all_agents",
-        "orr",
-        "hbr_ego",
-        "hbr_all",
-        "hbr_paper",
-    ]
+    cols = _INSPECT_COLUMNS
     print("  ".join(f"{c:>14}" for c in cols))
     for r in rows:
         print("  ".join(f"{_fmt(r[c]):>14}" for c in cols))
@@ -190,6 +162,24 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
         if k != "scenes":
             print(f"  {k:>14}: mean {v['mean']:.4g}  min {v['min']:.4g}  max {v['max']:.4g}")
     return 0
+
+
+#: Per-scene columns of ``counterscene inspect`` (numbers after the id are also summarised).
+_INSPECT_COLUMNS = (
+    "scenario_id",
+    "agents",
+    "vehicles",
+    "steps",
+    "duration_s",
+    "lanes",
+    "time_s",
+    "cr",
+    "cr_all_agents",
+    "orr",
+    "hbr_ego",
+    "hbr_all",
+    "hbr_paper",
+)
 
 
 def _iter_scenes(path: Path):

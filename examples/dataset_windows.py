@@ -1,6 +1,6 @@
 """Generate a few scenes, then iterate training windows with a torch DataLoader.
 
-    python examples/dataset_windows.py
+python examples/dataset_windows.py
 """
 
 from __future__ import annotations

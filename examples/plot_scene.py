@@ -1,7 +1,7 @@
 """Plot a scene's bird's-eye view: drivable area, lanes, every trajectory, the ego in red.
 
-    python examples/plot_scene.py intersection --seed 1 --out scene.png
-    python examples/plot_scene.py path/to/scenario.pkl --out scene.png     # a ScenarioNet log
+python examples/plot_scene.py intersection --seed 1 --out scene.png
+python examples/plot_scene.py path/to/scenario.pkl --out scene.png     # a ScenarioNet log
 """
 
 from __future__ import annotations
@@ -18,12 +18,18 @@ from counterscene_env.scene import SCENARIOS, generate, load_scenarionet
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("source", help=f"one of {SCENARIOS} or a ScenarioNet .pkl file")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="scene.png")
     args = parser.parse_args()
-    scene = generate(args.source, args.seed) if args.source in SCENARIOS else load_scenarionet(args.source)
+    scene = (
+        generate(args.source, args.seed)
+        if args.source in SCENARIOS
+        else load_scenarionet(args.source)
+    )
 
     fig, ax = plt.subplots(figsize=(8, 8))
     area = scene.road.drivable_area
@@ -36,9 +42,17 @@ def main() -> None:
     t = scene.current_index
     for i in range(scene.num_agents):
         ego = i == scene.ego_index
-        color = "tab:red" if ego else ("tab:blue" if scene.agent_types[i] == "vehicle" else "tab:green")
+        color = (
+            "tab:red" if ego else ("tab:blue" if scene.agent_types[i] == "vehicle" else "tab:green")
+        )
         v = scene.valid[i]
-        ax.plot(scene.positions[i, v, 0], scene.positions[i, v, 1], color=color, lw=1.5 if ego else 0.8, zorder=2)
+        ax.plot(
+            scene.positions[i, v, 0],
+            scene.positions[i, v, 1],
+            color=color,
+            lw=1.5 if ego else 0.8,
+            zorder=2,
+        )
         if scene.valid[i, t]:
             corners = box_corners(scene.positions[i, t], scene.yaws[i, t], scene.extents[i])
             ax.fill(corners[:, 0], corners[:, 1], color=color, zorder=3)
@@ -46,7 +60,9 @@ def main() -> None:
     ax.set_xlim(x - 70, x + 70)
     ax.set_ylim(y - 70, y + 70)
     ax.set_aspect("equal")
-    ax.set_title(f"{scene.scenario_id}: {scene.num_agents} agents, boxes at t = {t * scene.dt:.1f} s")
+    ax.set_title(
+        f"{scene.scenario_id}: {scene.num_agents} agents, boxes at t = {t * scene.dt:.1f} s"
+    )
     fig.savefig(args.out, dpi=100, bbox_inches="tight")
     print(f"wrote {args.out}")
 

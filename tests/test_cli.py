@@ -12,7 +12,12 @@ from counterscene_env.cli import main
 
 
 def _run(*args):
-    return subprocess.run([sys.executable, "-m", "counterscene_env.cli", *args], capture_output=True, text=True, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "counterscene_env.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
 
 
 @pytest.mark.parametrize("sub", [[], ["generate"], ["inspect"]])
@@ -23,13 +28,32 @@ def test_help_for_every_subcommand(sub):
 
 def test_generate_then_inspect_json(tmp_path, capsys):
     out = tmp_path / "d"
-    assert main(["generate", "--scenario", "roundabout", "--scenes", "2", "--seed", "3", "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "generate",
+                "--scenario",
+                "roundabout",
+                "--scenes",
+                "2",
+                "--seed",
+                "3",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert "2 scenes" in capsys.readouterr().out
     assert main(["inspect", str(out), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["summary"]["scenes"] == 2
     assert report["summary"]["cr"]["max"] == 0.0
-    assert {r["scenario_id"] for r in report["scenes"]} == {"roundabout/seed=3", "roundabout/seed=4"}
+    assert {r["scenario_id"] for r in report["scenes"]} == {
+        "roundabout/seed=3",
+        "roundabout/seed=4",
+    }
 
 
 def test_errors_are_one_clear_line(tmp_path):

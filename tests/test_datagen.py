@@ -18,7 +18,9 @@ def _seeds(directory):
 
 @pytest.mark.slow
 def test_first_n_safe_seeds_skipping_rejected(tmp_path):
-    m = generate_dataset(tmp_path / "d", "intersection", scenes=4, seed=0, shard_size=2, progress=False)
+    m = generate_dataset(
+        tmp_path / "d", "intersection", scenes=4, seed=0, shard_size=2, progress=False
+    )
     # Intersection seed 0 is an unsafe log (see test_highway): it is listed, and replaced.
     assert m["scenes"] == 4 and _seeds(tmp_path / "d") == [1, 2, 3, 5]
     assert [r[0] for s in m["shards"] for r in s["rejected"]] == [0, 4]
@@ -58,7 +60,7 @@ def test_a_directory_of_another_dataset_is_not_overwritten(tmp_path):
 
 
 def test_manifest_errors(tmp_path):
-    with pytest.raises(ShardError, match="no manifest.json"):
+    with pytest.raises(ShardError, match=r"no manifest\.json"):
         read_manifest(tmp_path)
     (tmp_path / "manifest.json").write_text('{"format": "counterscene-dataset", "version": 99}')
     with pytest.raises(ShardError, match="newer"):

@@ -10,7 +10,9 @@ from conftest import make_scene
 from counterscene_env.scene import save_scenes
 from counterscene_env.scene.dataset import SceneWindowDataset, WindowConfig
 
-CFG = WindowConfig(history_steps=11, future_steps=20, num_agents=4, num_lanes=6, lane_points=5, stride=5)
+CFG = WindowConfig(
+    history_steps=11, future_steps=20, num_agents=4, num_lanes=6, lane_points=5, stride=5
+)
 
 
 def _northbound_scene():

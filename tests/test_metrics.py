@@ -3,12 +3,13 @@
 import json
 import math
 
+import conftest
 import numpy as np
 import pytest
 from highway_env.road.road import RoadNetwork
 
 from counterscene_env import metrics
-from counterscene_env.scene import RoadMap, Scene
+from counterscene_env.scene import RoadMap
 
 DT = 0.1
 HIST = 3  # history steps; current_index = HIST - 1, the rollout starts at step HIST
@@ -22,21 +23,21 @@ def road():
 
 
 def make_scene(road, positions, yaws=None, speeds=None, valid=None, types=None, ids=None):
-    positions = np.asarray(positions, dtype=float)
-    n, t, _ = positions.shape
-    return Scene(
-        positions=positions,
-        yaws=np.zeros((n, t)) if yaws is None else yaws,
-        speeds=np.zeros((n, t)) if speeds is None else speeds,
-        extents=np.array([CAR] * n),
-        valid=np.ones((n, t), bool) if valid is None else valid,
-        agent_types=["vehicle"] * n if types is None else types,
-        agent_ids=[f"a{i}" for i in range(n)] if ids is None else ids,
-        ego_index=0,
+    n = np.asarray(positions).shape[0]
+    kw = {"agent_types": np.array(types)} if types is not None else {}
+    if ids is not None:
+        kw["agent_ids"] = np.array(ids)
+    return conftest.make_scene(
+        positions,
+        yaws,
+        speeds,
+        np.array([CAR] * n),
+        valid,
         road=road,
         dt=DT,
         scenario_id="test",
         current_index=HIST - 1,
+        **kw,
     )
 
 
