@@ -78,3 +78,11 @@ def test_a_larger_rerun_extends_the_dataset_like_a_fresh_run(tmp_path):
     fresh = tmp_path / "fresh"
     generate_dataset(fresh, "merge", scenes=3, seed=0, shard_size=5, progress=False)
     assert _seeds(small) == _seeds(fresh) == [0, 1, 2]
+
+
+def test_asking_for_fewer_scenes_never_deletes_any(tmp_path):
+    out = tmp_path / "d"
+    generate_dataset(out, "merge", scenes=2, seed=0, shard_size=1, progress=False)
+    with pytest.raises(ValueError, match="already holds a dataset of 2 scenes"):
+        generate_dataset(out, "merge", scenes=1, seed=0, shard_size=1, progress=False)
+    assert _seeds(out) == [0, 1]

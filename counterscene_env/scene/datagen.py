@@ -130,6 +130,13 @@ def _build(
 
     out.mkdir(parents=True, exist_ok=True)
     manifest = _open_manifest(out, params)
+    held = manifest.get("scenes_requested")
+    if target is not None and held is not None and held > target:
+        # Shrinking would delete scenes someone generated; never do that silently.
+        raise ValueError(
+            f"{out} already holds a dataset of {held} scenes; asked for {target}. "
+            "Use another --out, or ask for at least as many scenes."
+        )
     done: dict[int, dict] = {
         s["block"]: s
         for s in manifest["shards"]
