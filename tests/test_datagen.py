@@ -86,3 +86,36 @@ def test_asking_for_fewer_scenes_never_deletes_any(tmp_path):
     with pytest.raises(ValueError, match="already holds a dataset of 2 scenes"):
         generate_dataset(out, "merge", scenes=1, seed=0, shard_size=1, progress=False)
     assert _seeds(out) == [0, 1]
+
+
+def test_rerunning_a_finished_command_redoes_nothing(tmp_path):
+    out = tmp_path / "d"
+    generate_dataset(out, "merge", scenes=2, seed=0, shard_size=5, progress=False)
+    before = {p.name: p.stat().st_mtime_ns for p in out.glob("*.npz")}
+    generate_dataset(out, "merge", scenes=2, seed=0, shard_size=5, progress=False)
+    assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.npz")} == before
+    manifest = read_manifest(out)
+    assert manifest["shards"][0]["num_steps"] == [131, 131]
+
+
+def _write_scenarionet(path, sd):
+    import pickle
+
+    with open(path, "wb") as f:
+        pickle.dump(sd, f, protocol=4)
+
+
+def test_conversion_lists_bad_files_and_refuses_a_changed_folder(tmp_path):
+    from test_scenarionet import _scenario
+
+    from counterscene_env.scene.datagen import convert_scenarionet
+
+    src = tmp_path / "src"
+    src.mkdir()
+    _write_scenarionet(src / "b.pkl", _scenario())
+    (src / "c.pkl").write_bytes(b"garbage")
+    m = convert_scenarionet(src, tmp_path / "out", shard_size=1, progress=False)
+    assert m["scenes"] == 1 and [r[0] for s in m["shards"] for r in s["rejected"]] == ["c.pkl"]
+    _write_scenarionet(src / "a.pkl", _scenario())
+    with pytest.raises(ValueError, match="different dataset"):
+        convert_scenarionet(src, tmp_path / "out", shard_size=1, progress=False)

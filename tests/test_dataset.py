@@ -80,8 +80,13 @@ def test_agent_appearing_later_is_masked_until_it_appears():
 
 
 def test_loads_from_shards_and_dataset_dirs(tmp_path, generated):
+    from counterscene_env.scene.datagen import generate_dataset
+
     path = save_scenes([generated["merge"]], tmp_path / "s.npz")
     ds = SceneWindowDataset(path)
     assert len(ds) == 5
+    generate_dataset(tmp_path / "d", "merge", scenes=2, seed=0, shard_size=1, progress=False)
+    both = SceneWindowDataset([tmp_path / "d", path])
+    assert len(both) == 15 and len(both.scenes) == 3
     with pytest.raises(Exception, match="no such shard"):
         SceneWindowDataset(tmp_path / "missing.npz")

@@ -61,7 +61,12 @@ def test_unsafe_seed_is_rejected_and_the_next_seed_used():
 def test_bad_arguments():
     with pytest.raises(ValueError, match="unknown scenario"):
         generate("parking", seed=0)
-    with pytest.raises(ValueError, match="history"):
-        GeneratorConfig(duration=2.0)
+    with pytest.raises(ValueError, match="at least 13"):
+        GeneratorConfig(duration=10.0)
     with pytest.raises(ValueError, match="multiple of 10"):
         GeneratorConfig(sim_frequency=15)
+
+
+def test_duration_comes_from_the_argument_or_the_config():
+    assert generate("merge", seed=0, config=GeneratorConfig(duration=14.0)).num_steps == 141
+    assert generate("merge", seed=0, duration=13.5).num_steps == 136

@@ -397,3 +397,25 @@ def test_tracks_of_different_lengths(tmp_path):
     )
     with pytest.raises(ScenarioNetError, match=r"cone.*steps"):
         load_scenarionet(_write(tmp_path, sd))
+
+
+# ---------------------------------------------------------------------- review fixes
+def test_reversing_vehicle_gets_a_negative_speed(tmp_path):
+    sd = _scenario()
+    state = sd["tracks"]["veh_a"]["state"]
+    state["velocity"] = -state["velocity"]  # velocity points backwards relative to the heading
+    scene = load_scenarionet(_write(tmp_path, sd))
+    row = scene.agent_ids.tolist().index("veh_a")
+    np.testing.assert_allclose(scene.speeds[row][scene.valid[row]], -5.0)
+
+
+def test_lane_stubs_shorter_than_a_metre_do_not_break_the_import(tmp_path):
+    sd = _scenario()
+    sd["map_features"]["stub"] = {
+        "type": "LANE_SURFACE_STREET",
+        "polyline": np.array([[0.0, 40.0], [0.5, 40.0]]),
+    }
+    scene = load_scenarionet(_write(tmp_path, sd))
+    reference = load_scenarionet(_write(tmp_path, _scenario(), name="ref.pkl"))
+    assert len(scene.road.lane_centerlines) == len(reference.road.lane_centerlines)
+    assert scene.road.drivable_area.intersects(shapely.Point(0.25, 40.0)), "its surface is kept"

@@ -82,3 +82,12 @@ def test_object_arrays_are_never_unpickled(tmp_path, generated):
     np.savez(path, **arrays)
     with pytest.raises(ShardError, match="truncated or corrupt"):
         load_scenes(path)
+
+
+def test_shards_are_readable_by_others_like_any_file(tmp_path, generated):
+    import os
+
+    path = save_scenes([generated["merge"]], tmp_path / "s.npz")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask

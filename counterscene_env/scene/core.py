@@ -79,6 +79,7 @@ class Scene:
         self.ego_index = int(self.ego_index)
         self.current_index = int(self.current_index)
         self.dt = float(self.dt)
+        self.metadata = dict(self.metadata)  # a slice's metadata must not write back
         self._validate()
         # Invalid entries carry no meaning; zero them so that NaNs from a source never leak.
         inv = ~self.valid
@@ -154,7 +155,7 @@ class Scene:
 
     # ------------------------------------------------------------------ slicing
     def replace(self, **changes) -> Scene:
-        """A copy with some fields replaced (arrays are not copied unless replaced)."""
+        """A copy with some fields replaced (it owns copies of its arrays, like any Scene)."""
         return dataclasses.replace(self, **changes)
 
     def time_slice(self, start: int, stop: int) -> Scene:

@@ -16,6 +16,7 @@ skips the shards it lists, so an interrupted run loses at most the shards in fli
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import time
@@ -77,10 +78,15 @@ def convert_scenarionet(
     files = sorted(str(p) for p in Path(src).rglob("*.pkl"))
     if not files:
         raise FileNotFoundError(f"{src}: no ScenarioNet .pkl files found")
+    # Blocks are positions in the sorted file list: a resume over a changed folder would
+    # duplicate some files and skip others, so the list itself is part of the parameters.
+    listing = hashlib.sha256("\n".join(files).encode()).hexdigest()[:16]
     params = {
         "source": "scenarionet",
         "src": str(Path(src).resolve()),
         "shard_size": int(shard_size),
+        "files": len(files),
+        "file_list_sha256": listing,
     }
     blocks = [files[i : i + shard_size] for i in range(0, len(files), shard_size)]
 
@@ -137,11 +143,15 @@ def _build(
             f"{out} already holds a dataset of {held} scenes; asked for {target}. "
             "Use another --out, or ask for at least as many scenes."
         )
-    done: dict[int, dict] = {
-        s["block"]: s
-        for s in manifest["shards"]
-        if (s["scenes"] == 0 or (out / s["file"]).is_file()) and not s.get("truncated")
-    }
+    done: dict[int, dict] = {}
+    for entry in sorted(manifest["shards"], key=lambda e: e["block"]):
+        if entry["scenes"] and not (out / entry["file"]).is_file():
+            continue
+        # A block that stopped early is complete only if the target needs nothing more from it.
+        covered = sum(e["scenes"] for e in done.values()) + entry["scenes"]
+        if entry.get("truncated") and (target is None or covered < target):
+            continue
+        done[entry["block"]] = entry
 
     def contiguous_total() -> tuple[int, int]:
         total, k = 0, 0
@@ -211,33 +221,44 @@ def _build(
             pool.shutdown(wait=True, cancel_futures=True)
         bar.close()
     if target is not None:
-        _truncate(out, done, target)
+        _truncate(out, manifest, done, target)
     return _write_manifest(out, manifest, done, target)
 
 
-def _truncate(out: Path, done: dict[int, dict], target: int) -> None:
-    """Keep exactly the first ``target`` scenes (in seed order); drop blocks past them."""
-    total = 0
+def _truncate(out: Path, manifest: dict, done: dict[int, dict], target: int) -> None:
+    """Keep exactly the first ``target`` scenes (in seed order); drop blocks past them.
+
+    The manifest is written before any shard is cut or deleted: if the run dies in between,
+    the affected blocks are listed as truncated (or not at all) and a rerun redoes them.
+    """
+    total, cut, drop = 0, [], []
     for k in sorted(done):
         entry = done[k]
         if total >= target:
-            (out / entry["file"]).unlink(missing_ok=True)
+            drop.append(entry["file"])
             del done[k]
             continue
         keep = min(entry["scenes"], target - total)
         if keep < entry["scenes"]:
-            path = out / entry["file"]
-            save_scenes(load_scenes(path)[:keep], path)
             last_seed = entry["seeds"][keep - 1]
             entry.update(
                 scenes=keep,
                 truncated=True,
                 seeds=entry["seeds"][:keep],
                 num_agents=entry["num_agents"][:keep],
+                num_steps=entry["num_steps"][:keep],
                 gen_time_s=entry["gen_time_s"][:keep],
                 rejected=[r for r in entry["rejected"] if r[0] < last_seed],
             )
+            cut.append((out / entry["file"], keep))
         total += keep
+    if not (cut or drop):
+        return
+    _write_manifest(out, manifest, done, target)
+    for path, keep in cut:
+        save_scenes(load_scenes(path)[:keep], path)
+    for name in drop:
+        (out / name).unlink(missing_ok=True)
 
 
 def _open_manifest(out: Path, params: dict) -> dict:
@@ -304,6 +325,9 @@ def _convert_block(out: str, k: int, files: list[str]) -> dict:
             scene = load_scenarionet(f)
         except SceneError as exc:
             rejected.append([Path(f).name, str(exc)])
+            continue
+        except Exception as exc:  # odd data in one file must not stop the whole conversion
+            rejected.append([Path(f).name, f"{type(exc).__name__}: {exc}"])
             continue
         scene.metadata["generation_time_s"] = time.perf_counter() - start
         scenes.append(scene)

@@ -29,6 +29,7 @@ process-wide are restored after every recording.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -44,7 +45,7 @@ from highway_env.road.lane import LineType, StraightLane
 from highway_env.vehicle.behavior import IDMVehicle
 
 from counterscene_env.geometry import overlaps_over_time
-from counterscene_env.scene.core import DEFAULT_DT, DEFAULT_HISTORY_STEPS, Scene
+from counterscene_env.scene.core import DEFAULT_DT, Scene
 from counterscene_env.scene.road import RoadMap
 
 SCENARIOS = ("highway", "merge", "intersection", "roundabout")
@@ -63,6 +64,9 @@ class ForwardIDMVehicle(IDMVehicle):
 
 
 GENERATOR_VERSION = 2
+
+#: Shortest log, s: 3 s of history and 10 s of future.
+MIN_DURATION = 13.0
 
 
 @dataclass(frozen=True)
@@ -87,8 +91,11 @@ class GeneratorConfig:
     max_off_road: float = 1.0
 
     def __post_init__(self) -> None:
-        if self.duration < (DEFAULT_HISTORY_STEPS - 1) * DEFAULT_DT:
-            raise ValueError(f"duration must cover the 3 s history, got {self.duration} s")
+        if self.duration < MIN_DURATION:
+            raise ValueError(
+                f"duration must be at least {MIN_DURATION} s (3 s history + 10 s future), "
+                f"got {self.duration} s"
+            )
         if self.sim_frequency % 10:
             raise ValueError(f"sim_frequency must be a multiple of 10 Hz, got {self.sim_frequency}")
 
@@ -100,7 +107,7 @@ class RejectedScene(RuntimeError):
 def generate(
     scenario: str,
     seed: int,
-    duration: float = 13.0,
+    duration: float | None = None,
     *,
     max_attempts: int = 20,
     config: GeneratorConfig | None = None,
@@ -110,7 +117,8 @@ def generate(
     Args:
         scenario: one of :data:`SCENARIOS`.
         seed: the first seed tried; a rejected recording moves on to ``seed + 1`` and so on.
-        duration: recorded length, s (the scene has ``round(duration / 0.1) + 1`` steps).
+        duration: recorded length, s (the scene has ``round(duration / 0.1) + 1`` steps);
+            None: ``config.duration`` (13 s by default).
         max_attempts: seeds tried before giving up.
         config: further recording settings (``duration`` here overrides it).
 
@@ -118,7 +126,9 @@ def generate(
         The scene; ``scene.metadata["seed"]`` is the seed actually used and
         ``scene.metadata["rejected_seeds"]`` the ones skipped before it.
     """
-    cfg = GeneratorConfig(**{**_as_dict(config), "duration": duration})
+    cfg = config or GeneratorConfig()
+    if duration is not None:
+        cfg = dataclasses.replace(cfg, duration=duration)
     rejected: list[int] = []
     for attempt in range(max_attempts):
         try:
@@ -388,9 +398,3 @@ def _platoon_middle(scene: Scene) -> int:
 
 def _wrap(angle: np.ndarray) -> np.ndarray:
     return (angle + np.pi) % (2 * np.pi) - np.pi
-
-
-def _as_dict(config: GeneratorConfig | None) -> dict:
-    if config is None:
-        return {}
-    return {f: getattr(config, f) for f in GeneratorConfig.__dataclass_fields__}

@@ -35,6 +35,9 @@ SAMPLE_SPACING = 1.0
 #: corners like a kerb radius, but leaves straight road edges where they are.
 JUNCTION_FILL = 4.0
 
+#: Shortest lane highway-env's ``PolyLaneFixedWidth`` spline accepts, m.
+MIN_LANE_LENGTH = 1.0
+
 
 @dataclass(eq=False)
 class RoadMap:
@@ -130,8 +133,10 @@ class RoadMap:
         if not (len(widths) == len(polygons) == len(successors) == n):
             raise ValueError("centerlines, widths, polygons and successors must align")
         lines = [_dedupe(np.asarray(line, dtype=np.float64)[:, :2]) for line in centerlines]
-        usable = [len(line) >= 2 for line in lines]
-        # Degenerate lanes are dropped before nodes are named, so no link runs through them.
+        # highway-env's spline needs a lane of at least 1 m; shorter ones (map crops, stubs)
+        # keep their surface in the drivable area but are not lanes of the network. They are
+        # dropped before nodes are named, so no link runs through them.
+        usable = [_arc_length(line) >= MIN_LANE_LENGTH for line in lines]
         links = [
             [j for j in succ if 0 <= j < n and usable[j]] if usable[i] else []
             for i, succ in enumerate(successors)
@@ -140,6 +145,10 @@ class RoadMap:
         network = RoadNetwork()
         kept_lines, kept_widths, surfaces = [], [], []
         for i, (line, width, poly) in enumerate(zip(lines, widths, polygons, strict=True)):
+            if poly is not None and len(poly) >= 3:
+                surfaces.append(shapely.make_valid(shapely.Polygon(np.asarray(poly)[:, :2])))
+            elif len(line) >= 2:
+                surfaces.append(shapely.LineString(line).buffer(width / 2, cap_style="flat"))
             if not usable[i]:
                 continue
             network.add_lane(
@@ -147,10 +156,6 @@ class RoadMap:
             )
             kept_lines.append(line)
             kept_widths.append(float(width))
-            if poly is not None and len(poly) >= 3:
-                surfaces.append(shapely.make_valid(shapely.Polygon(np.asarray(poly)[:, :2])))
-            else:
-                surfaces.append(shapely.LineString(line).buffer(width / 2, cap_style="flat"))
         if extra_area is not None:
             surfaces.append(extra_area)
         area = shapely.union_all(surfaces).buffer(0.01) if surfaces else shapely.Polygon()
@@ -241,6 +246,10 @@ def _clip_polyline(points: np.ndarray, box: shapely.Geometry | None) -> list[np.
         pts = shapely.line_interpolate_point(piece, np.linspace(0.0, piece.length, n))
         out.append(shapely.get_coordinates(pts))
     return out
+
+
+def _arc_length(points: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum()) if len(points) > 1 else 0.0
 
 
 def _dedupe(points: np.ndarray) -> np.ndarray:

@@ -26,7 +26,8 @@ Tracks
 ``VEHICLE``/``PEDESTRIAN``/``CYCLIST`` map to ``"vehicle"``/``"pedestrian"``/``"cyclist"``;
 every other type (``TRAFFIC_CONE``, ``TRAFFIC_BARRIER``, ...) becomes ``"other"`` and is kept
 for collision checks. Tracks with no valid step are dropped. The ego (``metadata["sdc_id"]``)
-is row 0, the other tracks follow in file order. Speed is the norm of the logged velocity
+is row 0, the other tracks follow in file order. Speed is the norm of the logged velocity,
+negative where it points backwards relative to the heading (a reversing car)
 (m/s); extents are the median (length, width) over valid steps, and any vehicle whose length
 is below its width (the nuScenes ego box is stored as 1.73 x 4.08) gets the two swapped; the
 ids so fixed are listed in ``scene.metadata["swapped_extents"]``. Logs must be at 10 Hz or at
@@ -420,7 +421,11 @@ def _read_state(state: Mapping[str, Any], where: str) -> dict[str, np.ndarray]:
         flat[name] = arr.reshape(t)
     valid = np.isfinite(flat["valid"]) & (flat["valid"] != 0)
     pos2 = pos[:, :2]
-    speed = np.linalg.norm(vel[:, :2], axis=1)
+    # Signed speed (the scene contract): the velocity's magnitude, negative where it points
+    # backwards relative to the heading (a reversing car). The magnitude, not the projection,
+    # so that annotation slip between heading and velocity does not shrink speeds.
+    along = vel[:, 0] * np.cos(flat["heading"]) + vel[:, 1] * np.sin(flat["heading"])
+    speed = np.where(along < 0, -1.0, 1.0) * np.linalg.norm(vel[:, :2], axis=1)
     for name, arr in (("position", pos2), ("heading", flat["heading"]), ("velocity", speed)):
         if not np.isfinite(arr[valid]).all():
             raise ScenarioNetError(f"{where}.{name}: non-finite values at valid steps")

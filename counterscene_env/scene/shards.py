@@ -31,7 +31,6 @@ from __future__ import annotations
 import itertools
 import json
 import os
-import tempfile
 import zipfile
 import zlib
 from collections.abc import Sequence
@@ -81,13 +80,16 @@ def save_scenes(scenes: Sequence[Scene], path: str | os.PathLike) -> Path:
         arrays[f"{i}/road_offsets"] = np.cumsum([0] + [len(c) for c in lines]).astype(np.int64)
         arrays[f"{i}/road_widths"] = road.lane_widths
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    # A plain open() (not mkstemp, which makes 0600 files) so the shard gets the usual umask.
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        with os.fdopen(fd, "wb") as f:
+        with open(tmp, "wb") as f:
             np.savez_compressed(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
     return path
 
@@ -115,7 +117,16 @@ def load_scenes(path: str | os.PathLike) -> list[Scene]:
             return [_read_scene(data, i, path) for i in range(int(header["num_scenes"]))]
     except ShardError:
         raise
-    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError) as exc:
+    except (
+        zipfile.BadZipFile,
+        zlib.error,
+        EOFError,
+        OSError,
+        ValueError,
+        KeyError,
+        TypeError,
+        AttributeError,
+    ) as exc:
         raise ShardError(
             f"{path}: truncated or corrupt shard ({type(exc).__name__}: {exc})"
         ) from exc
