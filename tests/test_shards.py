@@ -91,3 +91,20 @@ def test_shards_are_readable_by_others_like_any_file(tmp_path, generated):
     umask = os.umask(0)
     os.umask(umask)
     assert path.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_polyline_lanes_survive_a_round_trip_exactly(tmp_path):
+    # highway-env serialises a polyline lane as its 1 m resampling, which cannot rebuild a lane
+    # under 2 m (nuScenes' shortest is 1.4 m) and moves lane ends; we keep the source points.
+    from conftest import make_scene
+
+    from counterscene_env.scene import RoadMap
+
+    short = np.array([[0.0, 0.0], [1.4, 0.0]])
+    bent = np.array([[1.4, 0.0], [10.0, 0.3], [20.25, 4.0]])
+    road = RoadMap.from_centerlines([short, bent], [3.5, 3.5], successors=[[1], []])
+    scene = make_scene(np.zeros((1, 3, 2)), road=road)
+    back = load_scenes(save_scenes([scene], tmp_path / "s.npz"))[0].road.network
+    for a, b in zip(road.network.lanes_list(), back.lanes_list(), strict=True):
+        assert a.length == pytest.approx(b.length)
+        np.testing.assert_allclose(a.position(a.length, 0.0), b.position(b.length, 0.0))

@@ -151,9 +151,7 @@ class RoadMap:
                 surfaces.append(shapely.LineString(line).buffer(width / 2, cap_style="flat"))
             if not usable[i]:
                 continue
-            network.add_lane(
-                start[i], end[i], PolyLaneFixedWidth(line.tolist(), width=float(width))
-            )
+            network.add_lane(start[i], end[i], _poly_lane(line, float(width)))
             kept_lines.append(line)
             kept_widths.append(float(width))
         if extra_area is not None:
@@ -178,6 +176,10 @@ def network_to_json(network: RoadNetwork) -> str:
         for _to, lane_list in to_dict.items():
             for lane in lane_list:
                 cfg = lane.to_config()["config"]
+                if isinstance(lane, PolyLaneFixedWidth) and hasattr(lane, "source_points"):
+                    # highway-env's to_config writes the spline's 1 m resampling, which loses
+                    # the lane's end and cannot rebuild a lane shorter than 2 m: keep the source.
+                    cfg["lane_points"] = lane.source_points.tolist()
                 if isinstance(lane, PolyLane):
                     cfg = {
                         "lane_points": cfg["lane_points"],
@@ -211,7 +213,11 @@ def network_from_json(text: str) -> RoadNetwork:
                 cfg[key] = np.asarray(cfg[key], dtype=np.float64)
         if cfg.get("line_types") is not None:
             cfg["line_types"] = tuple(cfg["line_types"])
-        network.add_lane(entry["from"], entry["to"], _LANE_CLASSES[name](**cfg))
+        if name == "PolyLaneFixedWidth":
+            lane = _poly_lane(np.asarray(cfg.pop("lane_points"), dtype=np.float64), **cfg)
+        else:
+            lane = _LANE_CLASSES[name](**cfg)
+        network.add_lane(entry["from"], entry["to"], lane)
     return network
 
 
@@ -246,6 +252,13 @@ def _clip_polyline(points: np.ndarray, box: shapely.Geometry | None) -> list[np.
         pts = shapely.line_interpolate_point(piece, np.linspace(0.0, piece.length, n))
         out.append(shapely.get_coordinates(pts))
     return out
+
+
+def _poly_lane(points: np.ndarray, width: float, **kwargs) -> PolyLaneFixedWidth:
+    """A ``PolyLaneFixedWidth`` that remembers its source points ``[P, 2]`` m for serialising."""
+    lane = PolyLaneFixedWidth(points.tolist(), width=width, **kwargs)
+    lane.source_points = np.asarray(points, dtype=np.float64)
+    return lane
 
 
 def _arc_length(points: np.ndarray) -> float:
