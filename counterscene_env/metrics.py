@@ -271,9 +271,7 @@ def hbr_ego(
     The stress-test signal: did the scenario force the ego into an emergency stop. NaN if the
     ego has no valid acceleration sample within the horizon.
     """
-    flags, mask = _hard_braking(scene, horizon, source, smooth, threshold)
-    e = scene.ego_index
-    return float(flags[e].any()) if mask[e].any() else math.nan
+    return _hbr_ego_of(*_hard_braking(scene, horizon, source, smooth, threshold), scene)
 
 
 def hbr_all(
@@ -288,7 +286,15 @@ def hbr_all(
     The traffic view, normalised as the paper's per-scene HBR (samples, not agents). NaN if no
     vehicle has a valid sample within the horizon.
     """
-    flags, mask = _hard_braking(scene, horizon, source, smooth, threshold)
+    return _hbr_all_of(*_hard_braking(scene, horizon, source, smooth, threshold), scene)
+
+
+def _hbr_ego_of(flags: np.ndarray, mask: np.ndarray, scene: Scene) -> float:
+    e = scene.ego_index
+    return float(flags[e].any()) if mask[e].any() else math.nan
+
+
+def _hbr_all_of(flags: np.ndarray, mask: np.ndarray, scene: Scene) -> float:
     veh = scene.vehicle_mask
     n = mask[veh].sum()
     return float(flags[veh].sum() / n) if n else math.nan
@@ -535,8 +541,8 @@ def evaluate_scene(
         "cr_all_agents": float(_any_collision(overlaps, e, include_ego=True).any()),
         "cr_non_ego": float(_any_collision(overlaps, e, include_ego=False).any()),
         "cr_ego_adversary": cr_adv,
-        "hbr_ego": hbr_ego(sim, smooth=smooth),
-        "hbr_all": hbr_all(sim, smooth=smooth),
+        "hbr_ego": _hbr_ego_of(flags, mask, sim),
+        "hbr_all": _hbr_all_of(flags, mask, sim),
         "hbr_paper": hbr_paper(sim),
         "orr": _off_road_rate(sim, off, None, include_ego=True),
         "min_ttc": min_ttc_ego(sim),
