@@ -4,6 +4,9 @@ Subcommands import what they need when they run, so ``counterscene --help`` is i
 
 - ``generate``: build a dataset directory of scenes (highway-env traffic or ScenarioNet logs).
 - ``inspect``: load scenes and report their size, timing and factual metrics.
+- ``train``: train a world model on dataset directories (resumable).
+- ``evaluate-model``: open-loop ADE/FDE/off-road of a world model vs constant velocity.
+- ``bench``: latency and FLOPs of a world model's sampling call.
 """
 
 from __future__ import annotations
@@ -81,7 +84,209 @@ def _parser() -> argparse.ArgumentParser:
         help="acceleration smoothing window for HBR, s (0.5 suits nuScenes' interpolated logs)",
     )
     ins.set_defaults(func=_cmd_inspect)
+
+    tr = sub.add_parser(
+        "train",
+        help="train a world model (resumable)",
+        description=(
+            "Train on dataset directories and write model.safetensors + config.json (the EMA "
+            "weights), last.pt (to resume) and log.jsonl into --out. Rerun the same command to "
+            "continue; a larger --steps extends the run."
+        ),
+    )
+    tr.add_argument("--data", required=True, nargs="+", metavar="DIR", help="dataset directories")
+    tr.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    tr.add_argument("--preset", default="default", help="model preset: default or paper")
+    tr.add_argument("--steps", type=int, default=20000, help="optimiser steps (default 20000)")
+    tr.add_argument("--batch-size", type=int, default=32, help="windows per step (default 32)")
+    tr.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (default 1e-4)")
+    tr.add_argument("--ema-decay", type=float, default=0.995, help="EMA decay (default 0.995)")
+    tr.add_argument("--ema-start", type=int, default=4000, help="first EMA step (default 4000)")
+    tr.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
+    tr.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    tr.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    tr.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a model config field of the preset (repeatable), e.g. --set d_model=96",
+    )
+    tr.add_argument("--quiet", action="store_true", help="no progress bar")
+    tr.set_defaults(func=_cmd_train)
+
+    ev = sub.add_parser(
+        "evaluate-model",
+        help="open-loop prediction metrics of a world model vs constant velocity",
+        description=(
+            "Predict every agent of freshly generated scenes (the first --scenes safe seeds from "
+            "--seed) or of a ScenarioNet directory, and report ADE/FDE at 1, 2, 3 s and the full "
+            "horizon (one sample, and the best of --samples), plus the off-road rate."
+        ),
+    )
+    ev_src = ev.add_mutually_exclusive_group(required=True)
+    ev_src.add_argument("--scenario", choices=("highway", "merge", "intersection", "roundabout"))
+    ev_src.add_argument("--scenarionet", metavar="DIR", help="ScenarioNet .pkl file or directory")
+    ev_src.add_argument("--data", metavar="DIR", help="a dataset directory or shard")
+    ev.add_argument("--scenes", type=int, default=50, help="scenes (default 50; all for a dir)")
+    ev.add_argument("--seed", type=int, default=100000, help="first seed (default 100000)")
+    ev.add_argument("--model", default="default", help="model directory (default: shipped)")
+    ev.add_argument("--samples", type=int, default=6, help="samples per scene (default 6)")
+    ev.add_argument("--json", action="store_true", help="print one JSON object")
+    ev.add_argument("--quiet", action="store_true", help="no progress bar")
+    ev.set_defaults(func=_cmd_evaluate_model)
+
+    be = sub.add_parser(
+        "bench",
+        help="latency and FLOPs of one world-model sampling call",
+        description=(
+            "Time one sampling call (all agents of a scene, default sampler and steps) --runs "
+            "times and report the median, FLOPs per denoiser forward (torch's flop counter) and "
+            "the fraction of this CPU's measured matmul peak."
+        ),
+    )
+    be.add_argument("--model", default="default", help="model directory (default: shipped)")
+    be.add_argument("--preset", help="benchmark an untrained model of this preset instead")
+    be.add_argument("--runs", type=int, default=50, help="timed calls (default 50)")
+    be.add_argument("--samples", type=int, default=1, help="samples per call (default 1)")
+    be.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
+    be.add_argument("--json", action="store_true", help="print one JSON object")
+    be.set_defaults(func=_cmd_bench)
     return parser
+
+
+def _parse_overrides(items: list[str]) -> dict:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from counterscene_env.world_model.config import ModelConfig, preset
+    from counterscene_env.world_model.train import TrainConfig, train
+
+    overrides = _parse_overrides(args.set)
+    ModelConfig.from_mapping({**preset(args.preset).to_dict(), **overrides})  # validate early
+    for d in args.data:
+        if not Path(d).exists():
+            raise FileNotFoundError(f"no dataset at {d}")
+    cfg = TrainConfig(
+        data=tuple(args.data),
+        out=args.out,
+        preset=args.preset,
+        model_overrides=overrides,
+        steps=args.steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        ema_decay=args.ema_decay,
+        ema_start=args.ema_start,
+        checkpoint_every=args.checkpoint_every,
+        seed=args.seed,
+        device=args.device,
+    )
+    record = train(cfg, progress=not args.quiet)
+    print(json.dumps(_finite(record)))
+    return 0
+
+
+def _load_model(name: str):
+    from counterscene_env.world_model.checkpoint import CheckpointError, load_model
+
+    try:
+        return load_model(name)
+    except CheckpointError as exc:
+        raise ValueError(str(exc)) from None
+
+
+def _cmd_evaluate_model(args: argparse.Namespace) -> int:
+    from counterscene_env.world_model.evaluate import evaluate_model
+
+    model = _load_model(args.model)
+    if args.scenario:
+        from counterscene_env.scene.highway import RejectedScene, record
+
+        # The first --scenes safe seeds from --seed, as `counterscene generate` picks them.
+        scenes, seed = [], args.seed
+        while len(scenes) < args.scenes:
+            try:
+                scenes.append(record(args.scenario, seed))
+            except RejectedScene:
+                pass
+            seed += 1
+    else:
+        scenes = [s for s, _ in _iter_scenes(Path(args.scenarionet or args.data))]
+        if args.scenes and not args.scenarionet:
+            scenes = scenes[: args.scenes]
+    result = evaluate_model(model, scenes, args.samples, seed=0, progress=not args.quiet)
+    result["source"] = (
+        f"{args.scenario} seeds from {args.seed}"
+        if args.scenario
+        else str(args.scenarionet or args.data)
+    )
+    if args.json:
+        print(json.dumps(_finite(result)))
+        return 0
+    print(
+        f"{result['scenes']} scenes, {result['agents']} agents, {result['samples']} samples, "
+        f"horizon {result['horizon_s']:.1f} s ({result['source']})"
+    )
+    hz = list(result["model"]["ade"])
+    print(f"{'':22s}" + "".join(f"{h:>8s}" for h in hz))
+    rows = [
+        ("model ADE [m]", result["model"]["ade"]),
+        ("model FDE [m]", result["model"]["fde"]),
+        (f"model minADE_{result['samples']} [m]", result["model"]["min_ade_6"]),
+        ("const. vel. ADE [m]", result["constant_velocity"]["ade"]),
+        ("const. vel. FDE [m]", result["constant_velocity"]["fde"]),
+    ]
+    for name, vals in rows:
+        print(f"{name:22s}" + "".join(f"{_fmt(vals[h]):>8s}" for h in hz))
+    print(
+        f"off-road: model {_fmt(result['model']['offroad_rate'])}, constant velocity "
+        f"{_fmt(result['constant_velocity']['offroad_rate'])}, log {_fmt(result['log_offroad_rate'])}"
+    )
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from counterscene_env.world_model.bench import bench_model
+
+    if args.preset:
+        from counterscene_env.world_model.config import preset
+        from counterscene_env.world_model.model import WorldModel
+
+        model, name = WorldModel(preset(args.preset)).eval(), f"preset {args.preset} (untrained)"
+    else:
+        model, name = _load_model(args.model), args.model
+    result = bench_model(model, runs=args.runs, samples=args.samples, threads=args.threads)
+    result["model"] = name
+    if args.json:
+        print(json.dumps(_finite(result)))
+        return 0
+    print(
+        f"{name}: {result['agents']} agents, {result['sampling_steps']} {result['sampler']} steps, "
+        f"{result['samples']} sample(s), {result['threads']} threads"
+    )
+    print(
+        f"  sampling call: median {result['latency_median_s'] * 1000:.1f} ms over {result['runs']} "
+        f"runs (p90 {result['latency_p90_s'] * 1000:.1f} ms)"
+    )
+    print(
+        f"  denoiser forward: {result['flops_per_forward'] / 1e9:.3f} GFLOP; "
+        f"{result['flops_per_call'] / 1e9:.2f} GFLOP per call"
+    )
+    print(
+        f"  achieved {result['achieved_gflops']:.2f} GFLOP/s of a measured matmul peak "
+        f"{result['peak_gflops']:.1f} GFLOP/s ({100 * result['peak_fraction']:.1f} %)"
+    )
+    return 0
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:

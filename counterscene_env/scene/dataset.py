@@ -56,6 +56,8 @@ class WindowConfig:
         lane_points: P points per lane segment.
         lane_segment_length: length of a lane segment, m.
         map_radius: segments farther than this from the ego are left out, m.
+        agent_radius: vehicles farther than this from the ego at ``t0`` are left out, m
+            (``None``: no limit, only ``num_agents`` caps).
         stride: steps between consecutive ``t0`` of one scene.
     """
 
@@ -66,6 +68,7 @@ class WindowConfig:
     lane_points: int = 10
     lane_segment_length: float = 20.0
     map_radius: float = 60.0
+    agent_radius: float | None = None
     stride: int = 10
 
 
@@ -122,6 +125,9 @@ class SceneWindowDataset(Dataset):
         K, H, F = c.num_agents, c.history_steps, c.future_steps
         rows = scene.nearest_indices(K, t0, types=("vehicle",))
         origin = np.array([*scene.positions[scene.ego_index, t0], scene.yaws[scene.ego_index, t0]])
+        if c.agent_radius is not None:
+            dist = np.linalg.norm(scene.positions[rows, t0] - origin[:2], axis=-1)
+            rows = rows[dist <= c.agent_radius]  # the ego (distance 0) always stays
         to_ego = _frame_transform(origin)
 
         def states(t_lo: int, t_hi: int) -> tuple[np.ndarray, np.ndarray]:

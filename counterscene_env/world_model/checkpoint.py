@@ -1,0 +1,162 @@
+"""World-model checkpoints: ``model.safetensors`` + ``config.json`` in one directory.
+
+``config.json``::
+
+    {"format": "counterscene-world-model", "version": 1, "preset": "default",
+     "architecture": {...ModelConfig fields...},
+     "normalization": {"action_mean": [a, w], "action_std": [a, w]},
+     "training": {...free-form provenance: data, steps, wall time, losses...}}
+
+Weights are safetensors only: loading never unpickles anything. :func:`load_model` checks the
+files, the format and version, the architecture keys, every tensor name and shape, and raises
+:class:`CheckpointError` with a message naming the problem.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from counterscene_env.world_model.config import ModelConfig
+from counterscene_env.world_model.model import Normalization, WorldModel
+
+FORMAT = "counterscene-world-model"
+VERSION = 1
+WEIGHTS = "model.safetensors"
+CONFIG = "config.json"
+DEFAULT_MODEL_DIR = Path(__file__).parent / "weights" / "default"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint directory that cannot be loaded; the message says why."""
+
+
+def save_model(
+    model: WorldModel,
+    directory: str | os.PathLike,
+    preset: str | None = None,
+    training: Mapping[str, Any] | None = None,
+) -> Path:
+    """Write ``model.safetensors`` and ``config.json`` into ``directory`` (created if needed).
+
+    Both files are written to temporary names first and renamed, so an interrupted save never
+    leaves a half-written checkpoint behind.
+    """
+    from safetensors.torch import save_file
+
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    meta = {
+        "format": FORMAT,
+        "version": VERSION,
+        "preset": preset,
+        "architecture": model.config.to_dict(),
+        "normalization": model.normalization.to_dict(),
+        "training": dict(training or {}),
+    }
+    tmp_w, tmp_c = out / (WEIGHTS + ".tmp"), out / (CONFIG + ".tmp")
+    save_file(tensors, str(tmp_w), metadata={"format": FORMAT, "version": str(VERSION)})
+    tmp_c.write_text(json.dumps(meta, indent=1) + "\n")
+    os.replace(tmp_w, out / WEIGHTS)
+    os.replace(tmp_c, out / CONFIG)
+    return out
+
+
+def read_config(directory: str | os.PathLike) -> dict[str, Any]:
+    """The validated ``config.json`` of a checkpoint directory."""
+    path = Path(directory)
+    if not path.is_dir():
+        raise CheckpointError(f"model directory {str(path)!r} does not exist")
+    cfg_path = path / CONFIG
+    if not cfg_path.is_file():
+        raise CheckpointError(f"{str(path)!r} has no {CONFIG} (not a CounterScene model directory)")
+    try:
+        meta = json.loads(cfg_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise CheckpointError(f"{cfg_path} is not valid JSON: {exc}") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise CheckpointError(
+            f"{cfg_path} is not a {FORMAT} config (format field missing or wrong)"
+        )
+    if meta.get("version") != VERSION:
+        raise CheckpointError(
+            f"{cfg_path} has format version {meta.get('version')!r}; this release reads version "
+            f"{VERSION}"
+        )
+    for key in ("architecture", "normalization"):
+        if not isinstance(meta.get(key), dict):
+            raise CheckpointError(f"{cfg_path} has no {key!r} section")
+    return meta
+
+
+def load_model(
+    directory: str | os.PathLike | None = "default", device: str | torch.device = "cpu"
+) -> WorldModel:
+    """Load a checkpoint directory (``"default"`` or ``None``: the model shipped in the package).
+
+    The model comes back in eval mode. Raises :class:`CheckpointError` on a missing file, a
+    foreign or newer format, an unknown architecture key, a file that is not safetensors,
+    missing or unexpected tensors, or a shape mismatch.
+    """
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    path = DEFAULT_MODEL_DIR if directory in (None, "default") else Path(directory)
+    meta = read_config(path)
+    try:
+        config = ModelConfig.from_mapping(meta["architecture"])
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"{path / CONFIG}: bad architecture: {exc}") from None
+    norm = meta["normalization"]
+    try:
+        normalization = Normalization(
+            tuple(float(v) for v in norm["action_mean"]),
+            tuple(float(v) for v in norm["action_std"]),
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CheckpointError(f"{path / CONFIG}: bad normalization section: {exc!r}") from None
+    values = (*normalization.action_mean, *normalization.action_std)
+    if (
+        len(values) != 4
+        or not all(math.isfinite(v) for v in values)
+        or min(normalization.action_std) <= 0
+    ):
+        raise CheckpointError(f"{path / CONFIG}: normalization must be 2 means and 2 positive stds")
+
+    weights = path / WEIGHTS
+    if not weights.is_file():
+        raise CheckpointError(f"{str(path)!r} has no {WEIGHTS}")
+    try:
+        tensors = load_file(str(weights), device="cpu")
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise CheckpointError(f"{weights} is not a readable safetensors file: {exc}") from None
+
+    model = WorldModel(config, normalization)
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(tensors))
+    unexpected = sorted(set(tensors) - set(expected))
+    if missing or unexpected:
+        raise CheckpointError(
+            f"{weights} does not match its architecture: missing {missing[:5]}"
+            f"{'...' if len(missing) > 5 else ''}, unexpected {unexpected[:5]}"
+            f"{'...' if len(unexpected) > 5 else ''}"
+        )
+    for name, tensor in tensors.items():
+        if tensor.shape != expected[name].shape:
+            raise CheckpointError(
+                f"{weights}: tensor {name!r} has shape {tuple(tensor.shape)}, the architecture in "
+                f"{CONFIG} needs {tuple(expected[name].shape)}"
+            )
+        if not torch.isfinite(tensor).all():
+            raise CheckpointError(f"{weights}: tensor {name!r} holds NaN or infinite values")
+    model.load_state_dict(tensors)
+    model.preset = meta.get("preset")
+    model.training_info = meta.get("training", {})
+    return model.to(device).eval()

@@ -1,0 +1,166 @@
+"""World-model configuration: one frozen, documented dataclass and its two presets.
+
+``paper`` holds the reference constants of the CounterScene paper (hyper-parameter table): 31
+history frames, 52 future steps, up to 21 agents within 50 m, width 128, 16 heads, 100 DDPM
+steps. It is sized for a GPU. ``default`` keeps the method and shrinks the constants for a 2-core
+CPU (DESIGN 7): 12 agents, history and future tokens subsampled, width 96, a 10-step strided
+sampler. Both build the same network class; only the sizes differ.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Architecture and sampling defaults of a world model.
+
+    Attributes:
+        history_steps: frames up to and including "now" that the model sees (10 Hz).
+        future_steps: future steps it predicts (10 Hz); ``future_steps * dt`` is the horizon.
+        history_stride: one history token every this many frames, ending at "now".
+        action_stride: one action token every this many future steps (actions held in between);
+            must divide ``future_steps``.
+        num_agents: K, the ego plus its nearest vehicles.
+        agent_radius: vehicles farther than this from the ego at "now" are left out [m].
+        num_lanes: lane segments the model sees.
+        lane_points: points per lane segment.
+        lane_segment_length: length of a lane segment [m].
+        map_radius: lane segments farther than this from the ego are left out [m].
+        d_model: token width.
+        num_heads: attention heads (must divide ``d_model``).
+        num_blocks: blocks of (temporal, social, map) attention + MLP.
+        mlp_ratio: hidden width of the MLPs, as a multiple of ``d_model``.
+        dropout: dropout inside the blocks during training.
+        graph_dropout: probability of dropping one CIG edge bias during training (paper: 0.1).
+        causal_temporal: causal instead of bidirectional temporal attention over future tokens.
+        prediction: what the network outputs: clean actions ``"x0"`` or the noise ``"epsilon"``.
+        num_train_timesteps: K of the cosine schedule.
+        sampler: default sampler, ``"ddim"`` (strided) or ``"ddpm"`` (all K steps).
+        sampling_steps: steps of the strided sampler.
+        eta: noise scale of the strided sampler (1 = ancestral DDPM posterior over each stride,
+            0 = deterministic DDIM).
+        clip_sample: clip the predicted clean actions to +-this (normalised units); 0 disables.
+        yaw_gain: low-speed yaw-rate bound of the rollout, |w| <= yaw_gain * v [rad/m].
+        lateral_limit: high-speed yaw-rate bound, |w| <= lateral_limit / v [m/s^2]. DESIGN's
+            values are 0.5 and 2 pi; the defaults are looser because the training traffic
+            needs it (highway-env's roundabout corners above 2 pi m/s^2 in ~27 % of its steps,
+            and yielding cars at the intersection turn in place faster than 0.5 v).
+        dt: step length [s].
+    """
+
+    history_steps: int = 31
+    future_steps: int = 52
+    history_stride: int = 5
+    action_stride: int = 4
+    num_agents: int = 12
+    agent_radius: float = 50.0
+    num_lanes: int = 32
+    lane_points: int = 10
+    lane_segment_length: float = 20.0
+    map_radius: float = 60.0
+    d_model: int = 96
+    num_heads: int = 4
+    num_blocks: int = 3
+    mlp_ratio: int = 4
+    dropout: float = 0.0
+    graph_dropout: float = 0.1
+    causal_temporal: bool = False
+    prediction: str = "x0"
+    num_train_timesteps: int = 100
+    sampler: str = "ddim"
+    sampling_steps: int = 10
+    eta: float = 1.0
+    clip_sample: float = 5.0
+    yaw_gain: float = 1.0
+    lateral_limit: float = 25.0
+    dt: float = 0.1
+
+    def __post_init__(self) -> None:
+        checks = [
+            (self.history_steps >= 1, "history_steps must be >= 1"),
+            (self.future_steps >= 1, "future_steps must be >= 1"),
+            (self.history_stride >= 1, "history_stride must be >= 1"),
+            (
+                self.action_stride >= 1 and self.future_steps % self.action_stride == 0,
+                "action_stride must divide future_steps",
+            ),
+            (self.num_agents >= 1, "num_agents must be >= 1"),
+            (
+                self.num_lanes >= 1 and self.lane_points >= 2,
+                "need num_lanes >= 1, lane_points >= 2",
+            ),
+            (self.d_model % self.num_heads == 0, "num_heads must divide d_model"),
+            (self.num_blocks >= 1, "num_blocks must be >= 1"),
+            (self.prediction in ("x0", "epsilon"), "prediction must be 'x0' or 'epsilon'"),
+            (self.sampler in ("ddim", "ddpm"), "sampler must be 'ddim' or 'ddpm'"),
+            (
+                1 <= self.sampling_steps <= self.num_train_timesteps,
+                "sampling_steps must be in [1, num_train_timesteps]",
+            ),
+            (0.0 <= self.graph_dropout < 1.0, "graph_dropout must be in [0, 1)"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ValueError(f"ModelConfig: {message}")
+
+    @property
+    def history_tokens(self) -> int:
+        """History tokens per agent: frames now, now - stride, ... within the history."""
+        return (self.history_steps - 1) // self.history_stride + 1
+
+    @property
+    def action_tokens(self) -> int:
+        """Future action tokens per agent."""
+        return self.future_steps // self.action_stride
+
+    @property
+    def horizon(self) -> float:
+        """Prediction horizon [s]."""
+        return self.future_steps * self.dt
+
+    def replace(self, **changes: Any) -> ModelConfig:
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_mapping(cls, mapping: Mapping[str, Any]) -> ModelConfig:
+        """Build from a mapping; an unknown key raises ``ValueError`` naming the valid ones."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(mapping) - names)
+        if unknown:
+            raise ValueError(
+                f"unknown world-model config key(s) {unknown}; valid keys: {sorted(names)}"
+            )
+        return cls(**dict(mapping))
+
+
+PRESETS: dict[str, ModelConfig] = {
+    # CPU default: every number here was measured (docs/world_model.md, `counterscene bench`).
+    "default": ModelConfig(),
+    # The paper's reference constants (hyper-parameter table of the CounterScene paper).
+    "paper": ModelConfig(
+        history_stride=1,
+        action_stride=1,
+        num_agents=21,
+        d_model=128,
+        num_heads=16,
+        num_blocks=4,
+        sampler="ddpm",
+        sampling_steps=100,
+    ),
+}
+
+
+def preset(name: str) -> ModelConfig:
+    """The named preset (``"default"`` or ``"paper"``)."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}") from None

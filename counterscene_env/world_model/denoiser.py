@@ -1,0 +1,229 @@
+"""The SceneTransformer-style denoiser with the Causal Interaction Graph (DESIGN 3.3).
+
+Tokens: per agent, ``Hh`` history tokens followed by ``Ta`` noisy future-action tokens, one
+sequence of ``L = Hh + Ta`` tokens of width ``d``. Every token gets its agent's embedding (current
+state and size) and the diffusion-step embedding. Each block then applies, pre-norm and residual:
+
+1. temporal self-attention along each agent's own sequence (bidirectional; optionally causal
+   over the future tokens), invalid history frames masked as keys;
+2. social attention across agents at each token position, with the CIG bias
+   ``log(max(g_ij, 1e-4))``, ``g_ij = sigmoid(MLP(phi(e_ij)))``, added to the logits (per head),
+   and padding agents masked as keys (an agent always sees itself, so no row is empty);
+3. cross-attention from every agent token to the lane-polyline tokens (plus one learned "no map"
+   token, so a scene without lanes is still well defined);
+4. an MLP.
+
+The head maps each future token to the network output ``[B, K, Ta, 2]``: clean normalised
+actions (x0) or the noise (epsilon).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from counterscene_env.world_model.cig import NUM_EDGE_FEATURES
+from counterscene_env.world_model.config import ModelConfig
+
+NEG = -1e9  # additive mask value: large but finite, so no softmax ever sees a row of -inf
+HISTORY_FEATURES = 9  # x, y, dx, dy, cos yaw, sin yaw, speed, valid, age
+AGENT_FEATURES = 9  # x, y, cos/sin heading, cos/sin course, speed, length, width
+MAP_FEATURES = 5  # x, y, direction x, direction y, width
+
+
+@dataclass
+class Context:
+    """What the denoiser needs besides the noisy actions; computed once per sampling call.
+
+    Attributes:
+        history: ``[B, K, Hh, d]`` embedded history tokens (before the step embedding).
+        agent: ``[B, K, d]`` agent embeddings.
+        temporal_bias: ``[B, K, 1, 1, L]`` additive key mask of the temporal attention.
+        social_bias: ``[B, 1, heads, K, K]`` CIG log-gate plus the padding mask.
+        map_tokens: ``[B, M + 1, d]`` lane tokens and the "no map" token.
+        map_bias: ``[B, 1, 1, M + 1]`` additive key mask of the map attention.
+    """
+
+    history: torch.Tensor
+    agent: torch.Tensor
+    temporal_bias: torch.Tensor
+    social_bias: torch.Tensor
+    map_tokens: torch.Tensor
+    map_bias: torch.Tensor
+
+    def repeat(self, n: int) -> Context:
+        """Each scene ``n`` times in a row (for ``n`` samples in one batched call)."""
+        return Context(*(t.repeat_interleave(n, dim=0) for t in vars(self).values()))
+
+
+class Attention(nn.Module):
+    """Multi-head attention over the last-but-one axis with an additive bias (any batch dims)."""
+
+    def __init__(self, d: int, heads: int, dropout: float) -> None:
+        super().__init__()
+        self.heads = heads
+        self.q = nn.Linear(d, d)
+        self.kv = nn.Linear(d, 2 * d)
+        self.out = nn.Linear(d, d)
+        self.dropout = dropout
+
+    def forward(self, x: torch.Tensor, memory: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        """``x [..., Lq, d]`` attends to ``memory [..., Lk, d]``; ``bias`` broadcasts to
+        ``[..., heads, Lq, Lk]``."""
+        *batch, lq, d = x.shape
+        lk = memory.shape[-2]
+        h = self.heads
+        # Flatten the batch dims to one: torch's fused CPU kernels take 4-D inputs only.
+        q = self.q(x).reshape(-1, lq, h, d // h).transpose(1, 2)
+        k, v = self.kv(memory).reshape(-1, lk, 2, h, d // h).permute(2, 0, 3, 1, 4)
+        if k.shape[0] != q.shape[0]:  # memory shared by several queries' batch entries
+            raise ValueError("memory batch dims must match the queries'")
+        bias = bias.expand(*batch, *bias.shape[-3:]).reshape(-1, *bias.shape[-3:])
+        y = F.scaled_dot_product_attention(
+            q, k, v, attn_mask=bias, dropout_p=self.dropout if self.training else 0.0
+        )
+        return self.out(y.transpose(1, 2).reshape(*batch, lq, d))
+
+
+class Block(nn.Module):
+    """Temporal, social and map attention, then an MLP (pre-norm, residual)."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        d, h, p = cfg.d_model, cfg.num_heads, cfg.dropout
+        self.norms = nn.ModuleList(nn.LayerNorm(d) for _ in range(4))
+        self.temporal = Attention(d, h, p)
+        self.social = Attention(d, h, p)
+        self.map = Attention(d, h, p)
+        self.mlp = nn.Sequential(
+            nn.Linear(d, cfg.mlp_ratio * d),
+            nn.GELU(),
+            nn.Dropout(p),
+            nn.Linear(cfg.mlp_ratio * d, d),
+        )
+
+    def forward(self, x: torch.Tensor, ctx: Context) -> torch.Tensor:
+        """``x``: ``[B, K, L, d]``."""
+        B, K, L, d = x.shape
+        y = self.norms[0](x)
+        x = x + self.temporal(y, y, ctx.temporal_bias)
+        y = self.norms[1](x).transpose(1, 2)  # [B, L, K, d]: attend across agents per position
+        x = x + self.social(y, y, ctx.social_bias).transpose(1, 2)
+        y = self.norms[2](x).reshape(B, K * L, d)
+        x = x + self.map(y, ctx.map_tokens, ctx.map_bias).reshape(B, K, L, d)
+        return x + self.mlp(self.norms[3](x))
+
+
+def _mlp(i: int, d: int, o: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(i, d), nn.SiLU(), nn.Linear(d, o))
+
+
+class Denoiser(nn.Module):
+    """The network: ``forward(noisy_actions, timesteps, context) -> [B, K, Ta, 2]``."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        d = cfg.d_model
+        self.history_in = _mlp(HISTORY_FEATURES, d, d)
+        self.agent_in = _mlp(AGENT_FEATURES, d, d)
+        self.action_in = nn.Linear(2, d)
+        self.position = nn.Parameter(torch.zeros(cfg.history_tokens + cfg.action_tokens, d))
+        nn.init.normal_(self.position, std=0.02)
+        self.step_mlp = _mlp(d, d, d)
+        self.edge_mlp = nn.Sequential(
+            nn.Linear(NUM_EDGE_FEATURES, d),
+            nn.SiLU(),
+            nn.Linear(d, d),
+            nn.SiLU(),
+            nn.Linear(d, cfg.num_heads),
+        )
+        self.point_in = _mlp(MAP_FEATURES, d, d)
+        self.lane_out = _mlp(d, d, d)
+        self.no_map = nn.Parameter(torch.zeros(1, 1, d))
+        self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.num_blocks))
+        self.norm_out = nn.LayerNorm(d)
+        self.head = nn.Linear(d, 2)
+        # Start the gate open (sigmoid(3) ~ 0.95): training begins as plain attention and learns
+        # which edges to suppress.
+        nn.init.zeros_(self.edge_mlp[-1].weight)
+        nn.init.constant_(self.edge_mlp[-1].bias, 3.0)
+
+    def step_embedding(self, timesteps: torch.Tensor) -> torch.Tensor:
+        """Sinusoidal embedding of the diffusion step ``[B]`` -> ``[B, d]``."""
+        half = self.cfg.d_model // 2
+        freq = torch.exp(-math.log(10000.0) * torch.arange(half, device=timesteps.device) / half)
+        arg = timesteps.float()[:, None] * freq[None]
+        return self.step_mlp(torch.cat([torch.sin(arg), torch.cos(arg)], -1))
+
+    def encode_context(
+        self,
+        history: torch.Tensor,
+        history_valid: torch.Tensor,
+        agent: torch.Tensor,
+        agent_valid: torch.Tensor,
+        edges: torch.Tensor,
+        lanes: torch.Tensor,
+        lanes_valid: torch.Tensor,
+        graph_dropout: float = 0.0,
+        generator: torch.Generator | None = None,
+    ) -> Context:
+        """Embed everything that does not depend on the diffusion step.
+
+        Args:
+            history: ``[B, K, Hh, 9]`` history token features.
+            history_valid: ``[B, K, Hh]`` bool.
+            agent: ``[B, K, 9]`` agent features.
+            agent_valid: ``[B, K]`` bool (real agent with a valid current state).
+            edges: ``[B, K, K, 6]`` CIG edge features.
+            lanes: ``[B, M, P, 5]`` lane point features.
+            lanes_valid: ``[B, M]`` bool.
+            graph_dropout: probability of dropping each edge's bias (training only).
+            generator: randomness of the graph dropout.
+        """
+        cfg = self.cfg
+        B, K, Hh, _ = history.shape
+        hist = self.history_in(history)
+        agent_emb = self.agent_in(agent)
+
+        key_ok = torch.cat([history_valid, history_valid.new_ones(B, K, cfg.action_tokens)], dim=-1)
+        temporal = torch.where(key_ok, 0.0, NEG)[:, :, None, None, :]  # [B, K, 1, 1, L]
+        if cfg.causal_temporal:
+            L = Hh + cfg.action_tokens
+            later = torch.ones(L, L, dtype=torch.bool, device=history.device).triu(1)
+            later[:, :Hh] = False  # history is always visible; only future keys are causal
+            temporal = temporal + torch.where(later, NEG, 0.0)
+
+        # CIG gate (DESIGN 3.3): bias = log(max(sigmoid(MLP(phi(e_ij))), 1e-4)), per head.
+        gate = torch.sigmoid(self.edge_mlp(edges))  # [B, K, K, heads]
+        bias = torch.log(gate.clamp(min=1e-4))
+        if graph_dropout > 0:
+            drop = torch.rand(bias.shape[:-1], generator=generator, device=bias.device)
+            bias = torch.where((drop < graph_dropout)[..., None], 0.0, bias)
+        eye = torch.eye(K, dtype=torch.bool, device=history.device)
+        key_agent = agent_valid[:, None, :] | eye  # query i may attend key j
+        bias = bias + torch.where(key_agent, 0.0, NEG)[..., None]
+        social = bias.permute(0, 3, 1, 2)[:, None]  # [B, 1, heads, K, K]
+
+        points = self.point_in(lanes).amax(dim=-2)  # point-net: max-pool over the points
+        tokens = torch.cat([self.lane_out(points), self.no_map.expand(B, 1, -1)], dim=1)
+        map_ok = torch.cat([lanes_valid, lanes_valid.new_ones(B, 1)], dim=1)
+        map_bias = torch.where(map_ok, 0.0, NEG)[:, None, None, :]
+        return Context(hist, agent_emb, temporal, social, tokens, map_bias)
+
+    def forward(
+        self, noisy_actions: torch.Tensor, timesteps: torch.Tensor, ctx: Context
+    ) -> torch.Tensor:
+        """Network output ``[B, K, Ta, 2]`` for noisy normalised actions ``[B, K, Ta, 2]`` at
+        diffusion steps ``timesteps [B]``."""
+        step = self.step_embedding(timesteps)[:, None, None, :]
+        x = torch.cat([ctx.history, self.action_in(noisy_actions)], dim=2)
+        x = x + self.position + ctx.agent[:, :, None, :] + step
+        for block in self.blocks:
+            x = block(x, ctx)
+        Hh = ctx.history.shape[2]
+        return self.head(self.norm_out(x[:, :, Hh:]))

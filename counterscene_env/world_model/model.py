@@ -1,0 +1,341 @@
+"""The world model: features from a scene window, the training loss, and batched sampling.
+
+A *batch* is a dict of tensors in the layout of
+:class:`counterscene_env.scene.dataset.SceneWindowDataset` (leading batch axis ``B``): ``history
+[B, K, H, 4]`` (x [m], y [m], yaw [rad], speed [m/s] in the ego frame), ``history_valid``,
+``extents [B, K, 2]`` m, ``agent_valid``, ``map [B, M, P, 2]`` m, ``map_valid``, ``map_widths``,
+and for training ``future [B, K, F, 4]`` and ``future_valid``. Agents are valid when
+``agent_valid`` and their current (last history) frame is valid.
+
+The diffused variable is each agent's future actions (acceleration [m/s^2], yaw rate [rad/s]),
+one token per ``action_stride`` steps, normalised by the training set's mean and standard
+deviation. Trajectories come from :func:`counterscene_env.dynamics.unicycle_rollout` of the
+denormalised actions from the agent's current state. The rollout's yaw is the agent's course
+(direction of motion, :func:`counterscene_env.dynamics.course_angles`), so predicted
+trajectories carry courses in their yaw channel; the body heading is an input only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+
+from counterscene_env.dynamics import (
+    actions_from_states,
+    course_angles,
+    unicycle_rollout,
+    wrap_angle,
+)
+from counterscene_env.scene.dataset import WindowConfig
+from counterscene_env.world_model.cig import edge_features
+from counterscene_env.world_model.config import ModelConfig
+from counterscene_env.world_model.denoiser import Context, Denoiser
+from counterscene_env.world_model.scheduler import CosineScheduler
+
+POSITION_SCALE = 20.0  # m: input positions are divided by this
+SPEED_SCALE = 10.0  # m/s
+LENGTH_SCALE = 5.0  # m
+WIDTH_SCALE = 2.0  # m
+LANE_WIDTH_SCALE = 4.0  # m
+
+# Trajectory terms of the training loss, added to the action MSE (normalised units): the mean
+# position error [m], heading error [rad] and speed error [m/s] of the rolled-out prediction.
+TRAJECTORY_WEIGHTS = {"position": 0.1, "yaw": 1.0, "speed": 0.1}
+
+#: ``guidance(mean, sigma, t, x0) -> mean``: edits the posterior mean ``[B*S, K, Ta, 2]``
+#: (normalised actions) at one denoising step; see :meth:`CosineScheduler.step`.
+GuidanceHook = Callable[[torch.Tensor, float, int, torch.Tensor], torch.Tensor]
+
+
+@dataclass
+class Normalization:
+    """Per-channel statistics of the actions (acceleration [m/s^2], yaw rate [rad/s])."""
+
+    action_mean: tuple[float, float] = (0.0, 0.0)
+    action_std: tuple[float, float] = (1.0, 0.1)
+
+    def to_dict(self) -> dict[str, list[float]]:
+        return {"action_mean": list(self.action_mean), "action_std": list(self.action_std)}
+
+
+@dataclass
+class Prediction:
+    """Output of :meth:`WorldModel.sample` (S samples per scene).
+
+    Attributes:
+        actions: ``[B, S, K, F, 2]`` acceleration [m/s^2], yaw rate [rad/s] per future step.
+        trajectory: ``[B, S, K, F, 4]`` x [m], y [m], yaw [rad], speed [m/s], ego frame.
+        normalized: ``[B, S, K, Ta, 2]`` the sampled action tokens, normalised.
+        valid: ``[B, K]`` agents the prediction is meaningful for.
+    """
+
+    actions: torch.Tensor
+    trajectory: torch.Tensor
+    normalized: torch.Tensor
+    valid: torch.Tensor
+    extras: dict = field(default_factory=dict)
+
+
+class WorldModel(nn.Module):
+    """Denoiser + cosine scheduler + normalisation (see the module docstring).
+
+    Args:
+        config: architecture and sampling defaults.
+        normalization: action statistics (from the training set; stored in ``config.json``).
+    """
+
+    def __init__(self, config: ModelConfig, normalization: Normalization | None = None) -> None:
+        super().__init__()
+        self.config = config
+        self.normalization = normalization or Normalization()
+        self.preset: str | None = None  # set by load_model from config.json
+        self.training_info: dict = {}  # provenance from config.json (data, steps, losses)
+        self.denoiser = Denoiser(config)
+        self.scheduler = CosineScheduler(
+            config.num_train_timesteps, config.prediction, config.clip_sample
+        )
+        n = self.normalization
+        self.register_buffer("action_mean", torch.tensor(n.action_mean), persistent=False)
+        self.register_buffer("action_std", torch.tensor(n.action_std), persistent=False)
+
+    # ------------------------------------------------------------------ data layout
+    def window_config(self, stride: int = 10) -> WindowConfig:
+        """The :class:`WindowConfig` that builds batches this model reads."""
+        c = self.config
+        return WindowConfig(
+            history_steps=c.history_steps,
+            future_steps=c.future_steps,
+            num_agents=c.num_agents,
+            num_lanes=c.num_lanes,
+            lane_points=c.lane_points,
+            lane_segment_length=c.lane_segment_length,
+            map_radius=c.map_radius,
+            agent_radius=c.agent_radius,
+            stride=stride,
+        )
+
+    @staticmethod
+    def agent_mask(batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``[B, K]``: real agents whose current state is known."""
+        return batch["agent_valid"] & batch["history_valid"][..., -1]
+
+    def kinematic_states(
+        self, batch: dict[str, torch.Tensor]
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """History ``[B, K, H, 4]`` and (when the batch has one) future ``[B, K, F, 4]`` with the
+        yaw channel replaced by the course (the unicycle's state)."""
+        hist, hist_ok = batch["history"], batch["history_valid"]
+        if "future" in batch:
+            states = torch.cat([hist, batch["future"]], dim=-2)
+            ok = torch.cat([hist_ok, batch["future_valid"]], dim=-1)
+        else:
+            states, ok = hist, hist_ok
+        course = course_angles(
+            states[..., :2], states[..., 2], states[..., 3], ok, dt=self.config.dt
+        )
+        states = torch.cat([states[..., :2], course[..., None], states[..., 3:]], dim=-1)
+        H = hist.shape[-2]
+        return states[..., :H, :], (states[..., H:, :] if "future" in batch else None)
+
+    def current_state(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``[B, K, 4]`` unicycle state at "now" (x, y, course, speed)."""
+        return self.kinematic_states(batch)[0][..., -1, :]
+
+    def normalize(self, actions: torch.Tensor) -> torch.Tensor:
+        return (actions - self.action_mean) / self.action_std
+
+    def denormalize(self, actions: torch.Tensor) -> torch.Tensor:
+        return actions * self.action_std + self.action_mean
+
+    def rollout(self, normalized: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """Trajectory ``[..., F, 4]`` of normalised action tokens ``[..., Ta, 2]`` from the
+        current states ``[..., 4]`` (actions held for ``action_stride`` steps)."""
+        actions = self.denormalize(normalized).repeat_interleave(self.config.action_stride, -2)
+        c = self.config
+        return unicycle_rollout(state, actions, c.dt, True, c.yaw_gain, c.lateral_limit)
+
+    def target_actions(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Ground-truth action tokens ``[B, K, Ta, 2]`` (physical units) and their validity.
+
+        Token j is the mean action between future steps ``j s`` and ``(j + 1) s``
+        (``s = action_stride``), from the speed and heading differences of the log.
+        """
+        s = self.config.action_stride
+        hist, fut = self.kinematic_states(batch)
+        states = torch.cat([hist[..., -1:, :], fut], dim=-2)
+        ok = torch.cat([self.agent_mask(batch)[..., None], batch["future_valid"]], dim=-1)
+        states, ok = states[..., ::s, :], ok[..., ::s]
+        actions = actions_from_states(states, self.config.dt * s)
+        valid = ok[..., 1:] & ok[..., :-1]
+        return torch.where(valid[..., None], actions, 0.0), valid
+
+    def context(
+        self,
+        batch: dict[str, torch.Tensor],
+        graph_dropout: float = 0.0,
+        generator: torch.Generator | None = None,
+    ) -> Context:
+        """Encode history, agents, CIG edges and lanes (once per sampling call)."""
+        c = self.config
+        hist, hist_ok = batch["history"], batch["history_valid"]
+        # History tokens: "now" and every history_stride-th frame before it, oldest first.
+        idx = torch.arange(hist.shape[-2] - 1, -1, -c.history_stride).flip(0)
+        hist, hist_ok = hist[..., idx, :], hist_ok[..., idx]
+        valid = self.agent_mask(batch)
+        hist_ok = hist_ok & valid[..., None]
+        now = hist[..., -1, :]
+        course = self.kinematic_states(batch)[0][..., -1, 2]
+        x, y, yaw, v = hist.unbind(-1)
+        age = (idx - idx[-1]).to(hist.dtype) / max(c.history_steps - 1, 1)
+        hfeat = torch.stack(
+            [
+                x / POSITION_SCALE,
+                y / POSITION_SCALE,
+                (x - now[..., None, 0]) / POSITION_SCALE,
+                (y - now[..., None, 1]) / POSITION_SCALE,
+                torch.cos(yaw),
+                torch.sin(yaw),
+                v / SPEED_SCALE,
+                hist_ok.to(hist.dtype),
+                age.expand_as(x),
+            ],
+            -1,
+        )
+        hfeat = torch.where(hist_ok[..., None], hfeat, 0.0)
+        ext = batch["extents"]
+        afeat = torch.stack(
+            [
+                now[..., 0] / POSITION_SCALE,
+                now[..., 1] / POSITION_SCALE,
+                torch.cos(now[..., 2]),
+                torch.sin(now[..., 2]),
+                torch.cos(course),
+                torch.sin(course),
+                now[..., 3] / SPEED_SCALE,
+                ext[..., 0] / LENGTH_SCALE,
+                ext[..., 1] / WIDTH_SCALE,
+            ],
+            -1,
+        )
+        afeat = torch.where(valid[..., None], afeat, 0.0)
+
+        velocity = now[..., 3:4] * torch.stack([torch.cos(course), torch.sin(course)], -1)
+        edges = edge_features(now[..., :2], velocity, valid, horizon=c.horizon)
+
+        lanes, lanes_ok = batch["map"], batch["map_valid"]
+        direction = torch.diff(lanes, dim=-2, append=lanes[..., -1:, :] * 2 - lanes[..., -2:-1, :])
+        direction = direction / direction.norm(dim=-1, keepdim=True).clamp(min=1e-6)
+        width = batch["map_widths"][..., None, None].expand(*lanes.shape[:-1], 1)
+        lfeat = torch.cat([lanes / POSITION_SCALE, direction, width / LANE_WIDTH_SCALE], -1)
+        lfeat = torch.where(lanes_ok[..., None, None], lfeat, 0.0)
+        return self.denoiser.encode_context(
+            hfeat, hist_ok, afeat, valid, edges, lfeat, lanes_ok, graph_dropout, generator
+        )
+
+    # ------------------------------------------------------------------ training
+    def loss(
+        self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None
+    ) -> dict[str, torch.Tensor]:
+        """Training loss of one batch: action MSE plus rolled-out trajectory errors.
+
+        Returns a dict with ``loss`` (to minimise) and its terms ``action``, ``position`` [m],
+        ``yaw`` [rad], ``speed`` [m/s] (detached).
+        """
+        c = self.config
+        target, tok_ok = self.target_actions(batch)
+        x0 = torch.where(tok_ok[..., None], self.normalize(target), 0.0)
+        B = x0.shape[0]
+        device = x0.device
+        t = torch.randint(0, c.num_train_timesteps, (B,), generator=generator, device=device)
+        noise = torch.randn(x0.shape, generator=generator, device=device)
+        noisy = self.scheduler.add_noise(x0, noise, t)
+        ctx = self.context(batch, c.graph_dropout if self.training else 0.0, generator)
+        out = self.denoiser(noisy, t, ctx)
+
+        if c.prediction == "x0":
+            pred_x0, goal = out, x0
+        else:
+            abar = self.scheduler.alphas_cumprod.to(device)[t].float().reshape(B, 1, 1, 1)
+            pred_x0, goal = (noisy - (1 - abar).sqrt() * out) / abar.sqrt(), noise
+        w = tok_ok[..., None].float()
+        action = ((out - goal) ** 2 * w).sum() / (w.sum() * 2).clamp(min=1)
+
+        hist, fut = self.kinematic_states(batch)
+        traj = self.rollout(pred_x0, hist[..., -1, :])
+        fut_ok = batch["future_valid"] & self.agent_mask(batch)[..., None]
+        n = fut_ok.float().sum().clamp(min=1)
+        pos = ((traj[..., :2] - fut[..., :2]).norm(dim=-1) * fut_ok).sum() / n
+        yaw = (wrap_angle(traj[..., 2] - fut[..., 2]).abs() * fut_ok).sum() / n
+        speed = ((traj[..., 3] - fut[..., 3]).abs() * fut_ok).sum() / n
+        tw = TRAJECTORY_WEIGHTS
+        loss = action + tw["position"] * pos + tw["yaw"] * yaw + tw["speed"] * speed
+        return {
+            "loss": loss,
+            "action": action.detach(),
+            "position": pos.detach(),
+            "yaw": yaw.detach(),
+            "speed": speed.detach(),
+        }
+
+    # ------------------------------------------------------------------ sampling
+    def sample(
+        self,
+        batch: dict[str, torch.Tensor],
+        num_samples: int = 1,
+        generator: torch.Generator | None = None,
+        sampler: str | None = None,
+        steps: int | None = None,
+        eta: float | None = None,
+        guidance: GuidanceHook | None = None,
+    ) -> Prediction:
+        """Sample every agent's future, ``num_samples`` per scene, in one batched call.
+
+        Args:
+            batch: scene windows (module docstring); ``future`` is not needed.
+            num_samples: S samples per scene, drawn together as a batch of ``B * S``.
+            generator: the only source of randomness (initial noise and every step's noise).
+            sampler: ``"ddim"`` (strided, ``steps`` steps) or ``"ddpm"`` (all K steps); default
+                from the config.
+            steps: strided sampler steps; default from the config.
+            eta: strided sampler noise scale; default from the config.
+            guidance: hook that edits the posterior mean at each step (see ``GuidanceHook``).
+        """
+        c = self.config
+        sampler = sampler or c.sampler
+        if sampler not in ("ddim", "ddpm"):
+            raise ValueError(f"sampler must be 'ddim' or 'ddpm', got {sampler!r}")
+        if sampler == "ddpm":
+            steps, eta = c.num_train_timesteps, 1.0
+        steps = steps or c.sampling_steps
+        eta = c.eta if eta is None else eta
+        valid = self.agent_mask(batch)
+        B, K = valid.shape
+        device = valid.device
+        with torch.no_grad():
+            ctx = self.context(batch).repeat(num_samples)
+        state = self.current_state(batch).repeat_interleave(num_samples, 0)
+
+        self.scheduler.set_timesteps(steps)
+        shape = (B * num_samples, K, c.action_tokens, 2)
+        x = torch.randn(shape, generator=generator, device=device)
+        for t in self.scheduler.timesteps.tolist():
+            tt = torch.full((B * num_samples,), t, device=device, dtype=torch.long)
+            with torch.no_grad():
+                out = self.denoiser(x, tt, ctx)
+            x = self.scheduler.step(out, t, x, generator, eta, guidance).prev_sample.detach()
+        # Padding agents get zero physical actions: a clean, finite "keep going" plan.
+        still = self.normalize(torch.zeros(2, device=device))
+        x = torch.where(valid.repeat_interleave(num_samples, 0)[..., None, None], x, still)
+        with torch.no_grad():
+            traj = self.rollout(x, state)
+            actions = self.denormalize(x).repeat_interleave(c.action_stride, -2)
+        S = num_samples
+        return Prediction(
+            actions=actions.reshape(B, S, *actions.shape[1:]),
+            trajectory=traj.reshape(B, S, *traj.shape[1:]),
+            normalized=x.reshape(B, S, *x.shape[1:]),
+            valid=valid,
+        )

@@ -1,0 +1,285 @@
+"""Training loop of the world model (``counterscene train``).
+
+Adam at 1e-4 with an EMA of decay 0.995 (the paper's values) over windows of generated or
+imported scenes. Everything is seeded; the run is resumable: every ``checkpoint_every`` steps
+``DIR/last.pt`` (plain containers, read back with ``torch.load(weights_only=True)``) and the EMA
+model as ``DIR/model.safetensors`` + ``DIR/config.json`` are written, and rerunning the same
+command continues from the last checkpoint and reproduces the same run. ``DIR/log.jsonl`` gets one
+line per validation.
+
+Validation: a held-out slice of the scenes of each dataset (the last ``val_fraction``), one
+sample per window from the EMA model with the default sampler, ADE over the whole horizon and
+FDE at its end [m], over valid agents.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import math
+import os
+import platform
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch.utils.data import default_collate
+
+from counterscene_env.scene.dataset import SceneWindowDataset
+from counterscene_env.world_model.checkpoint import save_model
+from counterscene_env.world_model.config import preset as get_preset
+from counterscene_env.world_model.model import Normalization, WorldModel
+
+STATE_FILE = "last.pt"
+LOG_FILE = "log.jsonl"
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Settings of one training run.
+
+    Attributes:
+        data: dataset directories (``counterscene generate`` output) or shard files.
+        out: output directory (checkpoints, the EMA model, the log).
+        preset: model preset (``default`` or ``paper``).
+        model_overrides: ModelConfig fields to change from the preset.
+        steps: optimiser steps.
+        batch_size: windows per step.
+        lr: Adam learning rate (paper: 1e-4).
+        ema_decay: EMA decay (paper: 0.995).
+        ema_start: step from which the EMA averages; before it the EMA copies the weights
+            (paper: 4000).
+        grad_clip: gradient-norm clip.
+        window_stride: steps between training windows of one scene.
+        val_fraction: fraction of each dataset's scenes held out for validation (the last ones).
+        val_windows: validation windows evaluated each time (at most).
+        checkpoint_every: steps between checkpoints and validations.
+        seed: seeds data order, diffusion noise and initialisation.
+        device: torch device.
+    """
+
+    data: tuple[str, ...]
+    out: str
+    preset: str = "default"
+    model_overrides: Mapping[str, Any] = field(default_factory=dict)
+    steps: int = 20000
+    batch_size: int = 32
+    lr: float = 1e-4
+    ema_decay: float = 0.995
+    ema_start: int = 4000
+    grad_clip: float = 1.0
+    window_stride: int = 5
+    val_fraction: float = 0.05
+    val_windows: int = 128
+    checkpoint_every: int = 500
+    seed: int = 0
+    device: str = "cpu"
+
+
+def _windows(ds: SceneWindowDataset, rows: Sequence[int]) -> dict[str, torch.Tensor]:
+    """All windows ``rows`` of ``ds`` collated into one batch (kept in memory)."""
+    return default_collate([ds[i] for i in rows])
+
+
+def _split(ds: SceneWindowDataset, sizes: Sequence[int], val_fraction: float):
+    """Window rows of the training and validation scenes: per dataset, the last
+    ``val_fraction`` of its scenes validate."""
+    val_scenes, start = set(), 0
+    for n in sizes:
+        k = max(1, round(n * val_fraction)) if val_fraction > 0 else 0
+        val_scenes.update(range(start + n - k, start + n))
+        start += n
+    train = [i for i, (s, _) in enumerate(ds.index) if s not in val_scenes]
+    val = [i for i, (s, _) in enumerate(ds.index) if s in val_scenes]
+    return train, val
+
+
+def action_statistics(model: WorldModel, batch: dict[str, torch.Tensor]) -> Normalization:
+    """Mean and standard deviation of the valid ground-truth action tokens of ``batch``."""
+    actions, ok = model.target_actions(batch)
+    a = actions[ok]
+    mean, std = a.mean(0), a.std(0).clamp(min=1e-3)
+    return Normalization(tuple(mean.tolist()), tuple(std.tolist()))
+
+
+def _batches(n: int, batch_size: int, seed: int, start_step: int) -> Iterator[torch.Tensor]:
+    """Row indices of each step: epoch ``e`` is a permutation seeded by ``(seed, e)``, so a
+    resumed run sees the same batches as an uninterrupted one."""
+    per_epoch = max(1, n // batch_size)
+    step = start_step
+    while True:
+        epoch, i = divmod(step, per_epoch)
+        perm = torch.randperm(n, generator=torch.Generator().manual_seed(seed * 100003 + epoch))
+        yield perm[i * batch_size : (i + 1) * batch_size]
+        step += 1
+
+
+@torch.no_grad()
+def validate(
+    model: WorldModel, batch: dict[str, torch.Tensor], seed: int, chunk: int = 64
+) -> dict[str, float]:
+    """ADE (whole horizon) and FDE [m] of one sample per window, over valid agents."""
+    model.eval()
+    g = torch.Generator(device=batch["history"].device).manual_seed(seed)
+    total, n, fde, nf = 0.0, 0, 0.0, 0
+    B = batch["history"].shape[0]
+    for lo in range(0, B, chunk):
+        part = {k: v[lo : lo + chunk] for k, v in batch.items()}
+        pred = model.sample(part, 1, g).trajectory[:, 0]
+        ok = part["future_valid"] & model.agent_mask(part)[..., None]
+        err = (pred[..., :2] - part["future"][..., :2]).norm(dim=-1)
+        total += float((err * ok).sum())
+        n += int(ok.sum())
+        fde += float((err[..., -1] * ok[..., -1]).sum())
+        nf += int(ok[..., -1].sum())
+    return {"val_ade": total / max(n, 1), "val_fde": fde / max(nf, 1)}
+
+
+def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
+    """Run (or resume) training; returns the final record (losses, validation, wall time)."""
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    device = torch.device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    model_cfg = get_preset(cfg.preset).replace(**dict(cfg.model_overrides))
+
+    probe = WorldModel(model_cfg)
+    datasets = [SceneWindowDataset(d, probe.window_config(cfg.window_stride)) for d in cfg.data]
+    sizes = [len(d.scenes) for d in datasets]
+    ds = SceneWindowDataset(
+        [s for d in datasets for s in d.scenes], probe.window_config(cfg.window_stride)
+    )
+    train_rows, val_rows = _split(ds, sizes, cfg.val_fraction)
+    if not train_rows:
+        raise ValueError(f"no training windows in {list(cfg.data)}")
+    train_data = {k: v.to(device) for k, v in _windows(ds, train_rows).items()}
+    val_rows = val_rows[:: max(1, len(val_rows) // cfg.val_windows)][: cfg.val_windows]
+    val_data = {k: v.to(device) for k, v in _windows(ds, val_rows).items()} if val_rows else None
+
+    state_path = out / STATE_FILE
+    state = (
+        torch.load(state_path, weights_only=True, map_location=device)
+        if state_path.is_file()
+        else None
+    )
+    if state is not None:
+        if state["config"] != _plain(cfg):
+            raise ValueError(
+                f"{state_path} belongs to a run with different settings; use a new --out "
+                "directory or delete it to start over"
+            )
+        normalization = Normalization(
+            *(tuple(state["normalization"][k]) for k in ("action_mean", "action_std"))
+        )
+    else:
+        normalization = action_statistics(probe, train_data)
+
+    model = WorldModel(model_cfg, normalization).to(device)
+    ema = copy.deepcopy(model).eval()
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    noise = torch.Generator(device=device).manual_seed(cfg.seed)
+    step, elapsed = 0, 0.0
+    if state is not None:
+        model.load_state_dict(state["model"])
+        ema.load_state_dict(state["ema"])
+        opt.load_state_dict(state["optimizer"])
+        noise.set_state(state["noise"].cpu() if device.type == "cpu" else state["noise"])
+        step, elapsed = int(state["step"]), float(state["elapsed"])
+
+    n_train = len(train_rows)
+    info = {
+        "data": [str(d) for d in cfg.data],
+        "scenes": sum(sizes),
+        "train_windows": n_train,
+        "val_windows": len(val_rows),
+        "parameters": sum(p.numel() for p in model.parameters()),
+        "batch_size": cfg.batch_size,
+        "lr": cfg.lr,
+        "ema_decay": cfg.ema_decay,
+        "seed": cfg.seed,
+        "device": str(device),
+        "hardware": f"{platform.machine()} {os.cpu_count()} cores"
+        + (f", {torch.cuda.get_device_name(device)}" if device.type == "cuda" else ""),
+        "torch": torch.__version__,
+    }
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.steps, initial=step, desc="train", unit="step", dynamic_ncols=True)
+    batches = _batches(n_train, cfg.batch_size, cfg.seed, step)
+    running: dict[str, float] = {}
+    record: dict[str, Any] = {}
+    t_start = time.perf_counter() - elapsed
+    model.train()
+    while step < cfg.steps:
+        rows = next(batches).to(device)
+        batch = {k: v[rows] for k, v in train_data.items()}
+        losses = model.loss(batch, noise)
+        opt.zero_grad(set_to_none=True)
+        losses["loss"].backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+        opt.step()
+        step += 1
+        with torch.no_grad():
+            decay = cfg.ema_decay if step > cfg.ema_start else 0.0
+            for pe, pm in zip(ema.parameters(), model.parameters(), strict=True):
+                pe.lerp_(pm, 1 - decay)
+        for k, v in losses.items():
+            running[k] = running.get(k, 0.0) + float(v.detach())
+        running["n"] = running.get("n", 0) + 1
+        if bar is not None:
+            bar.update(1)
+            if step % 10 == 0:
+                bar.set_postfix(
+                    loss=f"{float(losses['loss']):.3f}", pos=f"{float(losses['position']):.2f}m"
+                )
+        if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+            record = {"step": step, **{k: v / running["n"] for k, v in running.items() if k != "n"}}
+            running = {}
+            if val_data is not None:
+                record.update(validate(ema, val_data, cfg.seed))
+            record["wall_time_s"] = round(time.perf_counter() - t_start, 1)
+            with open(out / LOG_FILE, "a") as fh:
+                fh.write(json.dumps(record) + "\n")
+            save_model(ema, out, cfg.preset, {**info, "steps": step, **record})
+            tmp = out / (STATE_FILE + ".tmp")
+            torch.save(
+                {
+                    "step": step,
+                    "elapsed": time.perf_counter() - t_start,
+                    "config": _plain(cfg),
+                    "normalization": normalization.to_dict(),
+                    "model": model.state_dict(),
+                    "ema": ema.state_dict(),
+                    "optimizer": opt.state_dict(),
+                    "noise": noise.get_state(),
+                },
+                tmp,
+            )
+            os.replace(tmp, state_path)
+            if bar is not None and "val_ade" in record:
+                bar.write(
+                    f"step {step}: loss {record['loss']:.4f}  val ADE {record['val_ade']:.3f} m  "
+                    f"FDE {record['val_fde']:.3f} m"
+                )
+            model.train()
+    if bar is not None:
+        bar.close()
+    return record
+
+
+def _plain(cfg: TrainConfig) -> dict[str, Any]:
+    """The run settings as plain containers (compared on resume; stored in ``last.pt``)."""
+    d = dataclasses.asdict(cfg)
+    d["data"] = [str(x) for x in d["data"]]
+    d["model_overrides"] = {k: v for k, v in sorted(dict(cfg.model_overrides).items())}
+    d.pop("device")
+    d["steps"] = None  # a longer --steps continues the same run
+    return {
+        k: (v if not isinstance(v, float) or math.isfinite(v) else str(v)) for k, v in d.items()
+    }
