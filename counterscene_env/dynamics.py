@@ -91,7 +91,7 @@ def actions_from_states(states: torch.Tensor, dt: float = 0.1) -> torch.Tensor:
 
     Returns:
         ``[..., T, 2]`` (acceleration [m/s^2], yaw rate [rad/s]); yaw differences are wrapped
-        to (-pi, pi] first, so a heading crossing +-pi gives a small rate, not a 2 pi jump.
+        to [-pi, pi) first, so a heading crossing +-pi gives a small rate, not a 2 pi jump.
     """
     dv = states[..., 1:, 3] - states[..., :-1, 3]
     dyaw = wrap_angle(states[..., 1:, 2] - states[..., :-1, 2])

@@ -69,10 +69,19 @@ def bench_model(
     model: WorldModel, runs: int = 50, samples: int = 1, threads: int | None = None
 ) -> dict[str, Any]:
     """Median latency of ``runs`` sampling calls and FLOPs per denoiser forward."""
-    from torch.utils.flop_counter import FlopCounterMode
 
+    previous = torch.get_num_threads()
     if threads:
         torch.set_num_threads(threads)
+    try:
+        return _bench(model, runs, samples)
+    finally:
+        torch.set_num_threads(previous)
+
+
+def _bench(model: WorldModel, runs: int, samples: int) -> dict[str, Any]:
+    from torch.utils.flop_counter import FlopCounterMode
+
     model = model.eval()
     g = torch.Generator().manual_seed(0)
     batch = synthetic_batch(model, g)

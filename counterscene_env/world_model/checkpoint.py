@@ -138,7 +138,10 @@ def load_model(
     except (SafetensorError, OSError, ValueError) as exc:
         raise CheckpointError(f"{weights} is not a readable safetensors file: {exc}") from None
 
-    model = WorldModel(config, normalization)
+    try:
+        model = WorldModel(config, normalization)
+    except (TypeError, ValueError, RuntimeError, ZeroDivisionError) as exc:
+        raise CheckpointError(f"{path / CONFIG}: cannot build the architecture: {exc}") from None
     expected = model.state_dict()
     missing = sorted(set(expected) - set(tensors))
     unexpected = sorted(set(tensors) - set(expected))

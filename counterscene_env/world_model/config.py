@@ -81,6 +81,16 @@ class ModelConfig:
     dt: float = 0.1
 
     def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value, kind = getattr(self, f.name), f.type
+            ok = {
+                "int": isinstance(value, int) and not isinstance(value, bool),
+                "float": isinstance(value, (int, float)) and not isinstance(value, bool),
+                "bool": isinstance(value, bool),
+                "str": isinstance(value, str),
+            }[kind]
+            if not ok:
+                raise ValueError(f"ModelConfig: {f.name} must be {kind}, got {value!r}")
         checks = [
             (self.history_steps >= 1, "history_steps must be >= 1"),
             (self.future_steps >= 1, "future_steps must be >= 1"),
@@ -94,7 +104,11 @@ class ModelConfig:
                 self.num_lanes >= 1 and self.lane_points >= 2,
                 "need num_lanes >= 1, lane_points >= 2",
             ),
-            (self.d_model % self.num_heads == 0, "num_heads must divide d_model"),
+            (self.d_model >= 2 and self.mlp_ratio >= 1, "need d_model >= 2 and mlp_ratio >= 1"),
+            (
+                self.num_heads >= 1 and self.d_model % self.num_heads == 0,
+                "num_heads must divide d_model",
+            ),
             (self.num_blocks >= 1, "num_blocks must be >= 1"),
             (self.prediction in ("x0", "epsilon"), "prediction must be 'x0' or 'epsilon'"),
             (self.sampler in ("ddim", "ddpm"), "sampler must be 'ddim' or 'ddpm'"),

@@ -167,10 +167,12 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         else None
     )
     if state is not None:
-        if state["config"] != _plain(cfg):
+        old, new = state["config"], _plain(cfg)
+        changed = sorted(k for k in (set(old) | set(new)) - {"out"} if old.get(k) != new.get(k))
+        if changed:
             raise ValueError(
-                f"{state_path} belongs to a run with different settings; use a new --out "
-                "directory or delete it to start over"
+                f"{state_path} belongs to a run with different settings ({', '.join(changed)}); "
+                "use a new --out directory or delete it to start over"
             )
         normalization = Normalization(
             *(tuple(state["normalization"][k]) for k in ("action_mean", "action_std"))
@@ -279,6 +281,7 @@ def _plain(cfg: TrainConfig) -> dict[str, Any]:
     d["data"] = [str(x) for x in d["data"]]
     d["model_overrides"] = {k: v for k, v in sorted(dict(cfg.model_overrides).items())}
     d.pop("device")
+    d.pop("out")  # a moved or copied run directory still resumes
     d["steps"] = None  # a longer --steps continues the same run
     return {
         k: (v if not isinstance(v, float) or math.isfinite(v) else str(v)) for k, v in d.items()

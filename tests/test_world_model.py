@@ -1,0 +1,305 @@
+"""The world model on a tiny network: seeding, shapes, padding, overfitting, rollout, samplers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from conftest import make_scene
+from torch.utils.data import default_collate
+
+from counterscene_env.dynamics import unicycle_rollout
+from counterscene_env.scene.dataset import SceneWindowDataset
+from counterscene_env.world_model.config import preset
+from counterscene_env.world_model.model import Normalization, WorldModel
+from counterscene_env.world_model.train import action_statistics
+
+TINY = preset("default").replace(
+    d_model=32, num_heads=2, num_blocks=1, num_agents=4, num_lanes=8, sampling_steps=3
+)
+AGENT_KEYS = ("history", "history_valid", "future", "future_valid", "extents", "agent_valid")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    # Tiny ops on a shared 2-core machine: one thread is several times faster than two.
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def _model(config=TINY, seed=0, normalization=None) -> WorldModel:
+    torch.manual_seed(seed)
+    return WorldModel(config, normalization).eval()
+
+
+def _batch(model: WorldModel, scenes, rows=None) -> dict[str, torch.Tensor]:
+    ds = SceneWindowDataset(list(scenes), model.window_config())
+    rows = range(len(ds)) if rows is None else rows
+    return default_collate([ds[i] for i in rows])
+
+
+def _straight_scene(speeds=(10.0, 12.0), lanes=(0.0, 4.0), starts=(0.0, -15.0), T=90, valid=None):
+    """Cars driving along +x at constant speed (one window at t0 = 30 for the default sizes)."""
+    t = np.arange(T) * 0.1
+    n = len(speeds)
+    pos = np.zeros((n, T, 2))
+    for i, (v, y, x0) in enumerate(zip(speeds, lanes, starts, strict=True)):
+        pos[i, :, 0] = 20.0 + x0 + v * t
+        pos[i, :, 1] = y
+    spd = np.tile(np.asarray(speeds, float)[:, None], (1, T))
+    return make_scene(pos, speeds=spd, valid=valid)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    return _model()
+
+
+@pytest.fixture(scope="module")
+def scene_batch(tiny, generated):
+    """One window of each generated scenario (some with padding agent slots)."""
+    scenes = list(generated.values())
+    ds = SceneWindowDataset(scenes, tiny.window_config())
+    first = {}
+    for row, (s, _) in enumerate(ds.index):
+        first.setdefault(s, row)
+    return default_collate([ds[r] for r in first.values()])
+
+
+def test_window_config_matches_the_model(tiny):
+    w = tiny.window_config()
+    c = tiny.config
+    assert (w.history_steps, w.future_steps, w.num_agents, w.num_lanes) == (31, 52, 4, 8)
+    assert (w.lane_points, w.agent_radius) == (c.lane_points, c.agent_radius)
+
+
+def test_same_seed_same_sample_different_seed_different(tiny, scene_batch):
+    def draw(seed):
+        return tiny.sample(scene_batch, 2, torch.Generator().manual_seed(seed))
+
+    a, b, c = draw(0), draw(0), draw(1)
+    assert torch.equal(a.trajectory, b.trajectory) and torch.equal(a.actions, b.actions)
+    mask = a.valid[:, None].expand(-1, 2, -1)
+    assert not torch.allclose(a.trajectory[mask], c.trajectory[mask])
+    # The two samples of one scene differ from each other too.
+    assert not torch.allclose(a.normalized[:, 0], a.normalized[:, 1])
+
+
+def test_output_shapes_and_finite_with_padding(tiny, scene_batch):
+    B, S, K, F = scene_batch["history"].shape[0], 3, 4, 52
+    assert (~scene_batch["agent_valid"]).any(), "want at least one padding slot in the batch"
+    pred = tiny.sample(scene_batch, S, torch.Generator().manual_seed(0))
+    assert pred.actions.shape == (B, S, K, F, 2)
+    assert pred.trajectory.shape == (B, S, K, F, 4)
+    assert pred.normalized.shape == (B, S, K, TINY.action_tokens, 2)
+    assert torch.equal(pred.valid, tiny.agent_mask(scene_batch))
+    for t in (pred.actions, pred.trajectory, pred.normalized):
+        assert torch.isfinite(t).all()
+    # Padding agents get zero physical actions.
+    pad = ~pred.valid[:, None].expand(B, S, K)
+    torch.testing.assert_close(pred.actions[pad], torch.zeros_like(pred.actions[pad]))
+    # The trajectory is the rollout of the returned actions from the current state.
+    state = tiny.current_state(scene_batch)[:, None].expand(B, S, K, 4)
+    c = tiny.config
+    rolled = unicycle_rollout(state, pred.actions, c.dt, True, c.yaw_gain, c.lateral_limit)
+    torch.testing.assert_close(pred.trajectory, rolled)
+
+
+def test_agent_seen_only_now_and_padding_slots(tiny):
+    # Agent 1 appears at the "now" frame (t0 = 30): its whole history before it is invalid.
+    valid = np.ones((3, 90), bool)
+    valid[1, :30] = False
+    scene = _straight_scene((10.0, 12.0, 8.0), (0.0, 4.0, 0.0), (0.0, -10.0, 15.0), valid=valid)
+    batch = _batch(tiny, [scene])
+    assert batch["agent_valid"][0].tolist() == [True, True, True, False]
+    hv = batch["history_valid"][0]
+    row = int(np.flatnonzero(hv.sum(-1).numpy() == 1)[0])
+    assert hv[row, -1] and not hv[row, :-1].any()
+    pred = tiny.sample(batch, 2, torch.Generator().manual_seed(0))
+    assert pred.valid[0].tolist() == [True, True, True, False]
+    assert torch.isfinite(pred.trajectory).all() and torch.isfinite(pred.actions).all()
+    # Its features and loss are finite as well.
+    losses = tiny.loss(batch, torch.Generator().manual_seed(0))
+    assert all(torch.isfinite(v) for v in losses.values())
+
+
+def test_agent_valid_but_absent_now_is_padding(tiny):
+    batch = _batch(tiny, [_straight_scene()])
+    batch["history_valid"][0, 1, -1] = False
+    assert tiny.agent_mask(batch)[0].tolist() == [True, False, False, False]
+
+
+def test_padding_contents_do_not_change_valid_predictions(tiny):
+    batch = _batch(tiny, [_straight_scene()])
+    assert batch["agent_valid"][0].tolist() == [True, True, False, False]
+    garbage = {k: v.clone() for k, v in batch.items()}
+    g = torch.Generator().manual_seed(5)
+    for k in ("history", "future", "extents"):
+        garbage[k][:, 2:] = torch.randn(garbage[k][:, 2:].shape, generator=g) * 30
+    garbage["history_valid"][:, 2:] = True
+    garbage["future_valid"][:, 2:] = True
+    a = tiny.sample(batch, 2, torch.Generator().manual_seed(0))
+    b = tiny.sample(garbage, 2, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(b.trajectory[:, :, :2], a.trajectory[:, :, :2], rtol=0, atol=1e-5)
+    torch.testing.assert_close(b.normalized[:, :, :2], a.normalized[:, :, :2], rtol=0, atol=1e-6)
+
+
+def test_an_extra_padding_slot_does_not_change_the_denoiser_output(tiny):
+    batch = _batch(tiny, [_straight_scene((10.0, 12.0, 8.0), (0.0, 4.0, 0.0), (0.0, -10.0, 15.0))])
+    batch = {k: v[:, :3] if k in AGENT_KEYS else v for k, v in batch.items()}
+    assert batch["agent_valid"].all()
+    # The same scene with a fourth, padding slot holding a plausible-looking but invalid agent.
+    wider = {}
+    for k, v in batch.items():
+        if k in AGENT_KEYS:
+            extra = v[:, :1].clone()
+            if k == "agent_valid":
+                extra[:] = False
+            elif k == "history":
+                extra[..., 0] += 3.0  # 3 m ahead of the ego: would matter if attended
+            wider[k] = torch.cat([v, extra], dim=1)
+        else:
+            wider[k] = v
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(1, 4, TINY.action_tokens, 2, generator=g)
+    t = torch.tensor([40])
+    with torch.no_grad():
+        narrow_out = tiny.denoiser(x[:, :3], t, tiny.context(batch))
+        wide_out = tiny.denoiser(x, t, tiny.context(wider))
+        # Control: the same fourth agent marked valid does change the others' output.
+        wider["agent_valid"][:, 3] = True
+        seen_out = tiny.denoiser(x, t, tiny.context(wider))
+    torch.testing.assert_close(wide_out[:, :3], narrow_out, rtol=0, atol=1e-5)
+    assert not torch.allclose(seen_out[:, :3], narrow_out, atol=1e-4)
+
+
+@pytest.mark.slow
+def test_tiny_model_overfits_one_batch(generated):
+    probe = _model()
+    batch = _batch(probe, [generated["merge"]], rows=[0])
+    model = _model(normalization=action_statistics(probe, batch))
+
+    def fixed_noise_loss():
+        # Same diffusion steps and noise every time: only the weights change the loss.
+        model.eval()
+        with torch.no_grad():
+            return float(model.loss(batch, torch.Generator().manual_seed(123))["loss"])
+
+    before = fixed_noise_loss()
+    steps = 200
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    decay = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: 1 - i / steps)
+    model.train()
+    for _ in range(steps):
+        loss = model.loss(batch, torch.Generator().manual_seed(123))["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        decay.step()
+    after = fixed_noise_loss()
+    assert np.isfinite(before) and np.isfinite(after)
+    assert after < before / 10, (before, after)
+
+
+@pytest.mark.parametrize("curve_radius", [None, 60.0])
+def test_target_actions_roll_out_to_the_log(tiny, curve_radius):
+    T, v = 90, 10.0
+    t = np.arange(T) * 0.1
+    if curve_radius is None:
+        scene = _straight_scene((10.0, 13.0, 7.0), (0.0, 4.0, 4.0), (0.0, -20.0, 10.0))
+    else:  # constant-speed left turn on a 60 m circle
+        ang = v * t / curve_radius
+        pos = np.stack([curve_radius * np.sin(ang), curve_radius * (1 - np.cos(ang))], -1)
+        scene = make_scene(pos[None], yaws=ang[None], speeds=np.full((1, T), v))
+    batch = _batch(tiny, [scene])
+    actions, ok = tiny.target_actions(batch)
+    assert actions.shape == (1, 4, TINY.action_tokens, 2)
+    valid = tiny.agent_mask(batch)
+    assert ok[valid].all() and not ok[~valid].any()
+    expected_rate = 0.0 if curve_radius is None else v / curve_radius
+    torch.testing.assert_close(
+        actions[valid][..., 1],
+        torch.full_like(actions[valid][..., 1], expected_rate),
+        atol=1e-3,
+        rtol=0,
+    )
+    torch.testing.assert_close(
+        actions[valid][..., 0], torch.zeros_like(actions[valid][..., 0]), atol=1e-3, rtol=0
+    )
+    traj = tiny.rollout(tiny.normalize(actions), tiny.current_state(batch))
+    err = (traj[..., :2] - batch["future"][..., :2]).norm(dim=-1)[valid]
+    assert err.max() < 0.03, err.max()
+    speed_err = (traj[..., 3] - batch["future"][..., 3]).abs()[valid]
+    assert speed_err.max() < 1e-3
+
+
+def test_ddpm_and_ddim_samplers_run_their_steps(tiny):
+    batch = _batch(tiny, [_straight_scene()])
+    for sampler, expected in (("ddim", TINY.sampling_steps), ("ddpm", TINY.num_train_timesteps)):
+        seen = []
+
+        def hook(mean, sigma, t, x0, seen=seen):
+            seen.append((t, sigma, tuple(mean.shape)))
+            return mean
+
+        pred = tiny.sample(
+            batch, 2, torch.Generator().manual_seed(0), sampler=sampler, guidance=hook
+        )
+        assert torch.isfinite(pred.trajectory).all()
+        assert len(seen) == expected
+        assert seen[0][0] == TINY.num_train_timesteps - 1 and seen[-1][0] == 0
+        assert seen[-1][1] == 0.0 and all(s > 0 for _, s, _ in seen[:-1])
+        assert seen[0][2] == (2, 4, TINY.action_tokens, 2)
+    # Explicit steps and eta for the strided sampler.
+    pred = tiny.sample(batch, 1, torch.Generator().manual_seed(0), steps=5, eta=0.0)
+    assert torch.isfinite(pred.trajectory).all()
+    with pytest.raises(ValueError, match="sampler"):
+        tiny.sample(batch, 1, sampler="euler")
+
+
+def test_guidance_moves_the_samples(tiny):
+    batch = _batch(tiny, [_straight_scene()])
+    push = tiny.normalize(torch.tensor([3.0, 0.0]))  # +3 m/s^2 in normalised units
+
+    def accelerate(mean, sigma, t, x0):
+        return torch.full_like(mean, 0.0) + push
+
+    plain = tiny.sample(batch, 1, torch.Generator().manual_seed(0))
+    guided = tiny.sample(batch, 1, torch.Generator().manual_seed(0), guidance=accelerate)
+    valid = guided.valid[0]
+    torch.testing.assert_close(
+        guided.actions[0, 0][valid], torch.tensor([3.0, 0.0]).expand_as(guided.actions[0, 0][valid])
+    )
+    assert not torch.allclose(plain.trajectory, guided.trajectory)
+
+
+def test_epsilon_prediction_trains_and_samples(generated):
+    model = _model(TINY.replace(prediction="epsilon"))
+    batch = _batch(model, [generated["highway"]], rows=[0, 1])
+    model.train()
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    before = [p.detach().clone() for p in model.parameters()]
+    losses = model.loss(batch, torch.Generator().manual_seed(0))
+    assert set(losses) == {"loss", "action", "position", "yaw", "speed"}
+    assert all(torch.isfinite(v) for v in losses.values())
+    opt.zero_grad()
+    losses["loss"].backward()
+    grads = [p.grad for p in model.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(gr).all() for gr in grads)
+    opt.step()
+    assert any(not torch.equal(a, b) for a, b in zip(before, model.parameters(), strict=True))
+    model.eval()
+    pred = model.sample(batch, 2, torch.Generator().manual_seed(0))
+    assert pred.trajectory.shape == (2, 2, 4, 52, 4)
+    assert torch.isfinite(pred.trajectory).all()
+
+
+def test_normalization_round_trip(tiny):
+    model = _model(normalization=Normalization((0.5, -0.1), (2.0, 0.3)))
+    a = torch.tensor([[1.0, 0.2], [-3.0, -0.5]])
+    torch.testing.assert_close(
+        model.normalize(a), (a - torch.tensor([0.5, -0.1])) / torch.tensor([2.0, 0.3])
+    )
+    torch.testing.assert_close(model.denormalize(model.normalize(a)), a)

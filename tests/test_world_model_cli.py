@@ -1,0 +1,182 @@
+"""The world-model subcommands in-process: train (and resume), evaluate-model, bench."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from counterscene_env.cli import main
+from counterscene_env.world_model.checkpoint import load_model
+
+TINY = ["--set", "d_model=32", "--set", "num_heads=2", "--set", "num_blocks=1"]
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    # Tiny models on a shared 2-core machine: one thread is several times faster than two.
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("data") / "merge"
+    argv = ["generate", "--scenario", "merge", "--scenes", "3", "--out", str(out), "--quiet"]
+    assert main(argv) == 0
+    return out
+
+
+def _train(data, out, steps, *extra):
+    argv = [
+        "train",
+        "--data",
+        str(data),
+        "--out",
+        str(out),
+        "--steps",
+        str(steps),
+        "--checkpoint-every",
+        "2",
+        "--batch-size",
+        "4",
+        *TINY,
+        "--quiet",
+        *extra,
+    ]
+    return main(argv)
+
+
+def _log(out):
+    return (out / "log.jsonl").read_text().splitlines()
+
+
+@pytest.fixture(scope="module")
+def trained(dataset, tmp_path_factory):
+    """A 4-step tiny run (checkpoints at steps 2 and 4)."""
+    out = tmp_path_factory.mktemp("runs") / "o"
+    assert _train(dataset, out, 4) == 0
+    return out
+
+
+def test_train_writes_checkpoint_log_and_state(trained):
+    names = {p.name for p in trained.iterdir()}
+    assert {"model.safetensors", "config.json", "last.pt", "log.jsonl"} <= names
+    assert not any(n.endswith(".tmp") for n in names)
+    lines = [json.loads(line) for line in _log(trained)]
+    assert [r["step"] for r in lines] == [2, 4]
+    for r in lines:
+        assert math.isfinite(r["loss"]) and r["loss"] > 0
+        assert r["val_ade"] >= 0 and r["val_fde"] >= 0
+    model = load_model(trained)
+    assert model.config.d_model == 32 and model.config.num_blocks == 1
+    assert model.preset == "default" and model.training_info["steps"] == 4
+    assert model.training_info["scenes"] == 3
+    state = torch.load(trained / "last.pt", weights_only=True)
+    assert state["step"] == 4
+
+
+@pytest.mark.slow
+def test_resume_extends_the_run_and_matches_an_uninterrupted_one(dataset, tmp_path):
+    resumed = tmp_path / "resumed"
+    assert _train(dataset, resumed, 4) == 0
+    before = _log(resumed)
+    assert len(before) == 2
+    assert _train(dataset, resumed, 6) == 0  # the same command with a larger --steps
+    after = _log(resumed)
+    assert len(after) == 3 and after[:2] == before
+    assert json.loads(after[2])["step"] == 6
+    assert torch.load(resumed / "last.pt", weights_only=True)["step"] == 6
+
+    fresh = tmp_path / "fresh"
+    assert _train(dataset, fresh, 6) == 0
+    a = load_file(str(resumed / "model.safetensors"))
+    b = load_file(str(fresh / "model.safetensors"))
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    # Same losses and validation along the way (wall time aside).
+    for x, y in zip(_log(resumed), _log(fresh), strict=True):
+        x, y = json.loads(x), json.loads(y)
+        x.pop("wall_time_s"), y.pop("wall_time_s")
+        assert x == y
+
+    # A finished run rerun with the same --steps does nothing more.
+    assert _train(dataset, fresh, 6) == 0
+    assert len(_log(fresh)) == 3
+
+
+def test_resume_with_other_settings_is_refused(trained, dataset, capsys):
+    weights = (trained / "model.safetensors").read_bytes()
+    capsys.readouterr()
+    assert _train(dataset, trained, 6, "--lr", "0.001") == 1
+    err = capsys.readouterr().err
+    assert "different settings" in err and "Traceback" not in err
+    assert len(_log(trained)) == 2
+    assert (trained / "model.safetensors").read_bytes() == weights
+
+
+def test_train_unknown_set_key(dataset, tmp_path, capsys):
+    code = main(["train", "--data", str(dataset), "--out", str(tmp_path / "o"), "--set", "widht=3"])
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "widht" in err and "valid keys" in err and "d_model" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_train_bad_set_syntax_and_missing_data(dataset, tmp_path, capsys):
+    argv = ["train", "--data", str(dataset), "--out", str(tmp_path / "o"), "--set", "d_model"]
+    assert main(argv) == 1
+    assert "KEY=VALUE" in capsys.readouterr().err
+    argv = ["train", "--data", str(tmp_path / "none"), "--out", str(tmp_path / "o")]
+    assert main(argv) == 1
+    assert "no dataset at" in capsys.readouterr().err
+
+
+def test_evaluate_model_json(trained, dataset, capsys):
+    capsys.readouterr()
+    argv = ["evaluate-model", "--data", str(dataset), "--model", str(trained), "--json"]
+    assert main([*argv, "--samples", "2", "--quiet"]) == 0
+    out = capsys.readouterr().out.strip()
+    assert "\n" not in out  # one JSON object on one line
+    result = json.loads(out)
+    assert result["scenes"] == 3 and result["samples"] == 2 and result["agents"] > 0
+    model, cv = result["model"], result["constant_velocity"]
+    hz = {"1s", "2s", "3s", "full"}
+    for block, keys in ((model, ("ade", "fde", "min_ade_6")), (cv, ("ade", "fde"))):
+        for key in keys:
+            assert set(block[key]) == hz, key
+            for h, v in block[key].items():
+                assert isinstance(v, float) and math.isfinite(v) and v >= 0, (key, h, v)
+        assert 0.0 <= block["offroad_rate"] <= 1.0
+    # Errors grow with the horizon; the best of 2 samples is no worse than the first.
+    assert model["ade"]["1s"] <= model["ade"]["full"]
+    assert cv["ade"]["1s"] <= cv["ade"]["full"]
+    for h in hz:
+        assert model["min_ade_6"][h] <= model["ade"][h] + 1e-9
+
+
+def test_evaluate_model_missing_model(dataset, capsys):
+    argv = ["evaluate-model", "--data", str(dataset), "--model", "/nonexistent", "--quiet"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "/nonexistent" in err and "does not exist" in err and "Traceback" not in err
+
+
+def test_bench_json(capsys):
+    capsys.readouterr()
+    argv = ["bench", "--preset", "default", "--runs", "2", "--json", "--threads", "1"]
+    assert main(argv) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["runs"] == 2 and result["threads"] == 1
+    assert result["latency_median_s"] > 0 and result["latency_p90_s"] >= result["latency_median_s"]
+    assert result["flops_per_forward"] > 0
+    assert result["flops_per_call"] == result["flops_per_forward"] * result["sampling_steps"]
+    assert result["sampling_steps"] == 10 and result["sampler"] == "ddim"
+    assert result["peak_gflops"] > 0 and result["peak_fraction"] > 0
+    assert "untrained" in result["model"]
