@@ -45,6 +45,10 @@ class ModelConfig:
         eta: noise scale of the strided sampler (1 = ancestral DDPM posterior over each stride,
             0 = deterministic DDIM).
         clip_sample: clip the predicted clean actions to +-this (normalised units); 0 disables.
+        map_guidance: weight of the map guidance while sampling (a gradient step on the
+            posterior mean, clipped to the step's sigma; 0 disables); see ``map_guidance.py``.
+            Off by default: measured on the held-out scenes it lowers the off-road rate but
+            raises ADE more (docs/world_model.md).
         yaw_gain: low-speed yaw-rate bound of the rollout, |w| <= yaw_gain * v [rad/m].
         lateral_limit: high-speed yaw-rate bound, |w| <= lateral_limit / v [m/s^2]. DESIGN's
             values are 0.5 and 2 pi; the defaults are looser because the training traffic
@@ -76,6 +80,7 @@ class ModelConfig:
     sampling_steps: int = 10
     eta: float = 1.0
     clip_sample: float = 5.0
+    map_guidance: float = 0.0
     yaw_gain: float = 1.0
     lateral_limit: float = 25.0
     dt: float = 0.1

@@ -290,6 +290,7 @@ class WorldModel(nn.Module):
         steps: int | None = None,
         eta: float | None = None,
         guidance: GuidanceHook | None = None,
+        map_guidance: float | None = None,
     ) -> Prediction:
         """Sample every agent's future, ``num_samples`` per scene, in one batched call.
 
@@ -301,7 +302,10 @@ class WorldModel(nn.Module):
                 from the config.
             steps: strided sampler steps; default from the config.
             eta: strided sampler noise scale; default from the config.
-            guidance: hook that edits the posterior mean at each step (see ``GuidanceHook``).
+            guidance: hook that edits the posterior mean at each step (see ``GuidanceHook``);
+                it runs after the map guidance.
+            map_guidance: step size of the map guidance (``map_guidance.py``); default from the
+                config, 0 disables.
         """
         c = self.config
         sampler = sampler or c.sampler
@@ -318,6 +322,15 @@ class WorldModel(nn.Module):
             ctx = self.context(batch).repeat(num_samples)
         state = self.current_state(batch).repeat_interleave(num_samples, 0)
 
+        step_size = c.map_guidance if map_guidance is None else map_guidance
+        if step_size > 0:
+            from counterscene_env.world_model.map_guidance import make_map_guidance
+
+            on_road = make_map_guidance(self, batch, num_samples, step_size)
+            hook = on_road if guidance is None else _chain(on_road, guidance)
+        else:
+            hook = guidance
+
         self.scheduler.set_timesteps(steps)
         shape = (B * num_samples, K, c.action_tokens, 2)
         x = torch.randn(shape, generator=generator, device=device)
@@ -325,7 +338,7 @@ class WorldModel(nn.Module):
             tt = torch.full((B * num_samples,), t, device=device, dtype=torch.long)
             with torch.no_grad():
                 out = self.denoiser(x, tt, ctx)
-            x = self.scheduler.step(out, t, x, generator, eta, guidance).prev_sample.detach()
+            x = self.scheduler.step(out, t, x, generator, eta, hook).prev_sample.detach()
         # Padding agents get zero physical actions: a clean, finite "keep going" plan.
         still = self.normalize(torch.zeros(2, device=device))
         x = torch.where(valid.repeat_interleave(num_samples, 0)[..., None, None], x, still)
@@ -339,3 +352,10 @@ class WorldModel(nn.Module):
             normalized=x.reshape(B, S, *x.shape[1:]),
             valid=valid,
         )
+
+
+def _chain(first: GuidanceHook, second: GuidanceHook) -> GuidanceHook:
+    def hook(mean: torch.Tensor, sigma: float, t: int, x0: torch.Tensor) -> torch.Tensor:
+        return second(first(mean, sigma, t, x0), sigma, t, x0)
+
+    return hook
