@@ -102,6 +102,11 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (default 1e-4)")
     tr.add_argument("--ema-decay", type=float, default=0.995, help="EMA decay (default 0.995)")
     tr.add_argument("--ema-start", type=int, default=4000, help="first EMA step (default 4000)")
+    tr.add_argument(
+        "--lr-decay-start",
+        type=int,
+        help="step from which the learning rate falls linearly to lr/10 at --steps (default: none)",
+    )
     tr.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
     tr.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     tr.add_argument("--device", default="cpu", help="torch device (default cpu)")
@@ -187,6 +192,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         lr=args.lr,
         ema_decay=args.ema_decay,
         ema_start=args.ema_start,
+        lr_decay_start=args.lr_decay_start,
         checkpoint_every=args.checkpoint_every,
         seed=args.seed,
         device=args.device,

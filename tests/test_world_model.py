@@ -355,3 +355,14 @@ def test_map_guidance_pulls_samples_toward_the_lanes(tiny, scene_batch):
         return (ex**2).mean()
 
     assert off(1.0) < off(0.0)
+
+
+def test_learning_rate_schedule():
+    from counterscene_env.world_model.train import TrainConfig, learning_rate
+
+    flat = TrainConfig(data=("d",), out="o", steps=100, lr=1e-3)
+    assert learning_rate(flat, 0) == learning_rate(flat, 99) == 1e-3
+    decay = TrainConfig(data=("d",), out="o", steps=100, lr=1e-3, lr_decay_start=60)
+    assert learning_rate(decay, 59) == 1e-3
+    assert learning_rate(decay, 80) == pytest.approx(1e-3 * (1 - 0.9 * 0.5))
+    assert learning_rate(decay, 100) == pytest.approx(1e-4)

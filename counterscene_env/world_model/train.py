@@ -53,6 +53,9 @@ class TrainConfig:
         ema_decay: EMA decay (paper: 0.995).
         ema_start: step from which the EMA averages; before it the EMA copies the weights
             (paper: 4000).
+        lr_decay_start: from this step the learning rate falls linearly to ``lr / 10`` at
+            ``steps`` (None: constant, the paper's setting). Like ``steps`` it may change when a
+            run is resumed.
         grad_clip: gradient-norm clip.
         window_stride: steps between training windows of one scene.
         val_fraction: fraction of each dataset's scenes held out for validation (the last ones).
@@ -71,6 +74,7 @@ class TrainConfig:
     lr: float = 1e-4
     ema_decay: float = 0.995
     ema_start: int = 4000
+    lr_decay_start: int | None = None
     grad_clip: float = 1.0
     window_stride: int = 5
     val_fraction: float = 0.05
@@ -201,6 +205,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         "parameters": sum(p.numel() for p in model.parameters()),
         "batch_size": cfg.batch_size,
         "lr": cfg.lr,
+        "lr_decay_start": cfg.lr_decay_start,
         "ema_decay": cfg.ema_decay,
         "seed": cfg.seed,
         "device": str(device),
@@ -219,6 +224,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     t_start = time.perf_counter() - elapsed
     model.train()
     while step < cfg.steps:
+        for group in opt.param_groups:
+            group["lr"] = learning_rate(cfg, step)
         rows = next(batches).to(device)
         batch = {k: v[rows] for k, v in train_data.items()}
         losses = model.loss(batch, noise)
@@ -275,6 +282,15 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     return record
 
 
+def learning_rate(cfg: TrainConfig, step: int) -> float:
+    """Learning rate of optimiser step ``step + 1`` (see ``TrainConfig.lr_decay_start``)."""
+    start = cfg.lr_decay_start
+    if start is None or step < start or cfg.steps <= start:
+        return cfg.lr
+    frac = min(1.0, (step - start) / (cfg.steps - start))
+    return cfg.lr * (1 - 0.9 * frac)
+
+
 def _plain(cfg: TrainConfig) -> dict[str, Any]:
     """The run settings as plain containers (compared on resume; stored in ``last.pt``)."""
     d = dataclasses.asdict(cfg)
@@ -283,6 +299,7 @@ def _plain(cfg: TrainConfig) -> dict[str, Any]:
     d.pop("device")
     d.pop("out")  # a moved or copied run directory still resumes
     d["steps"] = None  # a longer --steps continues the same run
+    d["lr_decay_start"] = None  # and so may the tail of the schedule
     return {
         k: (v if not isinstance(v, float) or math.isfinite(v) else str(v)) for k, v in d.items()
     }
