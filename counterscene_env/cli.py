@@ -12,6 +12,7 @@ Subcommands import what they need when they run, so ``counterscene --help`` is i
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import sys
@@ -132,8 +133,12 @@ def _parser() -> argparse.ArgumentParser:
     ev_src = ev.add_mutually_exclusive_group(required=True)
     ev_src.add_argument("--scenario", choices=("highway", "merge", "intersection", "roundabout"))
     ev_src.add_argument("--scenarionet", metavar="DIR", help="ScenarioNet .pkl file or directory")
-    ev_src.add_argument("--data", metavar="DIR", help="a dataset directory or shard")
-    ev.add_argument("--scenes", type=int, default=50, help="scenes (default 50; all for a dir)")
+    ev_src.add_argument(
+        "--data", nargs="+", metavar="DIR", help="dataset directories or shards (pooled)"
+    )
+    ev.add_argument(
+        "--scenes", type=int, default=50, help="scenes (per --data dataset; default 50)"
+    )
     ev.add_argument("--seed", type=int, default=100000, help="first seed (default 100000)")
     ev.add_argument("--model", default="default", help="model directory (default: shipped)")
     ev.add_argument("--samples", type=int, default=6, help="samples per scene (default 6)")
@@ -227,9 +232,14 @@ def _cmd_evaluate_model(args: argparse.Namespace) -> int:
                 pass
             seed += 1
     else:
-        scenes = [s for s, _ in _iter_scenes(Path(args.scenarionet or args.data))]
-        if args.scenes and not args.scenarionet:
-            scenes = scenes[: args.scenes]
+        if args.scenarionet:
+            scenes = [s for s, _ in _iter_scenes(Path(args.scenarionet))]
+        else:  # the first --scenes of each dataset
+            scenes = [
+                s
+                for d in args.data
+                for s, _ in itertools.islice(_iter_scenes(Path(d)), args.scenes)
+            ]
     result = evaluate_model(model, scenes, args.samples, seed=0, progress=not args.quiet)
     result["source"] = (
         f"{args.scenario} seeds from {args.seed}"
