@@ -277,7 +277,7 @@ def test_ill_typed_architecture_value(saved, change):
         load_model(out)
 
 
-def test_shipped_default_model():
+def test_shipped_default_model(generated):
     if not (DEFAULT_MODEL_DIR / CONFIG).is_file():
         pytest.skip(f"no shipped default model yet ({DEFAULT_MODEL_DIR / CONFIG} is being trained)")
     implicit, named = load_model(), load_model("default")
@@ -287,12 +287,12 @@ def test_shipped_default_model():
     ref = named.state_dict()
     for model in (implicit, none):
         assert all(torch.equal(ref[k], v) for k, v in model.state_dict().items())
-    # A trained model keeps two cars cruising on a straight road on course (an untrained
-    # default-preset model is off by 4-8 m on average over the 5.2 s horizon).
-    batch = _batch(named)
-    pred = named.sample(batch, 2, torch.Generator().manual_seed(0))
-    assert torch.isfinite(pred.trajectory).all()
-    ok = batch["future_valid"] & named.agent_mask(batch)[..., None]
-    err = (pred.trajectory[..., :2] - batch["future"][:, None, ..., :2]).norm(dim=-1)
-    ade = err[ok[:, None].expand_as(err)].mean()
-    assert ade < 2.0, f"shipped model ADE {float(ade):.2f} m on a straight constant-speed road"
+    # The shipped model is the trained one: on one generated scene per road (seed 1, which is
+    # inside its training seed range, so this is a sanity check, not the held-out figure of
+    # docs/world_model.md) it beats constant velocity at 3 s by a wide margin. The measured
+    # ratio is 0.54; an untrained default-preset model is worse than constant velocity.
+    from counterscene_env.world_model.evaluate import evaluate_model
+
+    result = evaluate_model(named, list(generated.values()), num_samples=2, seed=0)
+    ours, cv = result["model"]["ade"]["3s"], result["constant_velocity"]["ade"]["3s"]
+    assert ours < 0.75 * cv, f"shipped model ADE@3s {ours:.2f} m vs constant velocity {cv:.2f} m"
