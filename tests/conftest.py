@@ -39,6 +39,18 @@ def make_scene(
     )
 
 
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Tiny models on a shared 2-core machine: one torch thread is several times faster than
+    two (no thread contention); the previous setting comes back after the module."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture(scope="session")
 def generated():
     """One generated scene per highway-env scenario (seed 1), built once."""

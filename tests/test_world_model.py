@@ -20,13 +20,7 @@ TINY = preset("default").replace(
 AGENT_KEYS = ("history", "history_valid", "future", "future_valid", "extents", "agent_valid")
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # Tiny ops on a shared 2-core machine: one thread is several times faster than two.
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _model(config=TINY, seed=0, normalization=None) -> WorldModel:

@@ -15,13 +15,7 @@ from counterscene_env.world_model.checkpoint import load_model
 TINY = ["--set", "d_model=32", "--set", "num_heads=2", "--set", "num_blocks=1"]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # Tiny models on a shared 2-core machine: one thread is several times faster than two.
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
