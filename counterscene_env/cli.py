@@ -221,16 +221,13 @@ def _cmd_evaluate_model(args: argparse.Namespace) -> int:
 
     model = _load_model(args.model)
     if args.scenario:
-        from counterscene_env.scene.highway import RejectedScene, record
+        from counterscene_env.scene.highway import generate
 
         # The first --scenes safe seeds from --seed, as `counterscene generate` picks them.
         scenes, seed = [], args.seed
         while len(scenes) < args.scenes:
-            try:
-                scenes.append(record(args.scenario, seed))
-            except RejectedScene:
-                pass
-            seed += 1
+            scenes.append(generate(args.scenario, seed))
+            seed = scenes[-1].metadata["seed"] + 1
     else:
         if args.scenarionet:
             scenes = [s for s, _ in _iter_scenes(Path(args.scenarionet))]

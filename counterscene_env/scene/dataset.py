@@ -89,17 +89,7 @@ class SceneWindowDataset(Dataset):
         config: WindowConfig | None = None,
     ) -> None:
         self.config = config or WindowConfig()
-        if isinstance(sources, (str, os.PathLike)):
-            sources = [sources]
-        self.scenes: list[Scene] = []
-        for src in sources:
-            if isinstance(src, Scene):
-                self.scenes.append(src)
-            elif (Path(src) / MANIFEST).is_file():
-                for shard in shard_paths(src):
-                    self.scenes.extend(load_scenes(shard))
-            else:
-                self.scenes.extend(load_scenes(src))
+        self.scenes: list[Scene] = load_sources(sources)
         c = self.config
         self._segments = [
             _lane_segments(s, c.lane_segment_length, c.lane_points) for s in self.scenes
@@ -177,6 +167,24 @@ class SceneWindowDataset(Dataset):
             "scene_index": np.int64(scene_index),
             "t0": np.int64(t0),
         }
+
+
+def load_sources(
+    sources: Sequence[str | os.PathLike | Scene] | str | os.PathLike,
+) -> list[Scene]:
+    """Scenes from dataset directories (with ``manifest.json``), shard files or ``Scene``s."""
+    if isinstance(sources, (str, os.PathLike)):
+        sources = [sources]
+    scenes: list[Scene] = []
+    for src in sources:
+        if isinstance(src, Scene):
+            scenes.append(src)
+        elif (Path(src) / MANIFEST).is_file():
+            for shard in shard_paths(src):
+                scenes.extend(load_scenes(shard))
+        else:
+            scenes.extend(load_scenes(src))
+    return scenes
 
 
 def _frame_transform(origin: np.ndarray):

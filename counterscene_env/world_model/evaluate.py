@@ -110,15 +110,17 @@ def evaluate_model(
             [{k: torch.from_numpy(np.asarray(v)) for k, v in w.items()} for w in items]
         )
         with torch.no_grad():
-            pred = model.sample(batch, num_samples, g).trajectory.numpy()  # [B, S, K, F, 4]
+            prediction = model.sample(batch, num_samples, g)
+            pred = prediction.trajectory.numpy()  # [B, S, K, F, 4]
+            agent_ok = prediction.valid.numpy()  # [B, K]
             state = model.current_state(batch).numpy()  # [B, K, 4]
         t = (np.arange(1, F + 1) * model.config.dt)[None, :, None]
         heading = np.stack([np.cos(state[..., 2]), np.sin(state[..., 2])], -1)
         cv_xy = state[:, :, None, :2] + (state[:, :, None, 3:4] * t) * heading[:, :, None, :]
         future = batch["future"].numpy()
-        valid = (batch["future_valid"] & model.agent_mask(batch)[..., None]).numpy()
+        valid = batch["future_valid"].numpy() & agent_ok[..., None]
         for b, i in enumerate(idx):
-            keep = model.agent_mask(batch)[b].numpy()
+            keep = agent_ok[b]
             if not keep.any():
                 continue
             agents += int(keep.sum())

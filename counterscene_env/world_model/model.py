@@ -18,7 +18,7 @@ trajectories carry courses in their yaw channel; the body heading is an input on
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from torch import nn
@@ -76,7 +76,6 @@ class Prediction:
     trajectory: torch.Tensor
     normalized: torch.Tensor
     valid: torch.Tensor
-    extras: dict = field(default_factory=dict)
 
 
 class WorldModel(nn.Module):
@@ -142,7 +141,12 @@ class WorldModel(nn.Module):
 
     def current_state(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """``[B, K, 4]`` unicycle state at "now" (x, y, course, speed)."""
-        return self.kinematic_states(batch)[0][..., -1, :]
+        # The course at "now" needs only the last two frames (a backward difference).
+        last = {
+            "history": batch["history"][..., -2:, :],
+            "history_valid": batch["history_valid"][..., -2:],
+        }
+        return self.kinematic_states(last)[0][..., -1, :]
 
     def normalize(self, actions: torch.Tensor) -> torch.Tensor:
         return (actions - self.action_mean) / self.action_std
@@ -157,14 +161,19 @@ class WorldModel(nn.Module):
         c = self.config
         return unicycle_rollout(state, actions, c.dt, True, c.yaw_gain, c.lateral_limit)
 
-    def target_actions(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    def target_actions(
+        self,
+        batch: dict[str, torch.Tensor],
+        states: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Ground-truth action tokens ``[B, K, Ta, 2]`` (physical units) and their validity.
 
         Token j is the mean action between future steps ``j s`` and ``(j + 1) s``
-        (``s = action_stride``), from the speed and heading differences of the log.
+        (``s = action_stride``), from the speed and course differences of the log.
+        ``states`` is ``kinematic_states(batch)`` when the caller already has it.
         """
         s = self.config.action_stride
-        hist, fut = self.kinematic_states(batch)
+        hist, fut = states if states is not None else self.kinematic_states(batch)
         states = torch.cat([hist[..., -1:, :], fut], dim=-2)
         ok = torch.cat([self.agent_mask(batch)[..., None], batch["future_valid"]], dim=-1)
         states, ok = states[..., ::s, :], ok[..., ::s]
@@ -187,7 +196,7 @@ class WorldModel(nn.Module):
         valid = self.agent_mask(batch)
         hist_ok = hist_ok & valid[..., None]
         now = hist[..., -1, :]
-        course = self.kinematic_states(batch)[0][..., -1, 2]
+        course = self.current_state(batch)[..., 2]
         x, y, yaw, v = hist.unbind(-1)
         age = (idx - idx[-1]).to(hist.dtype) / max(c.history_steps - 1, 1)
         hfeat = torch.stack(
@@ -245,7 +254,8 @@ class WorldModel(nn.Module):
         ``yaw`` [rad], ``speed`` [m/s] (detached).
         """
         c = self.config
-        target, tok_ok = self.target_actions(batch)
+        hist, fut = self.kinematic_states(batch)
+        target, tok_ok = self.target_actions(batch, (hist, fut))
         x0 = torch.where(tok_ok[..., None], self.normalize(target), 0.0)
         B = x0.shape[0]
         device = x0.device
@@ -263,7 +273,6 @@ class WorldModel(nn.Module):
         w = tok_ok[..., None].float()
         action = ((out - goal) ** 2 * w).sum() / (w.sum() * 2).clamp(min=1)
 
-        hist, fut = self.kinematic_states(batch)
         traj = self.rollout(pred_x0, hist[..., -1, :])
         fut_ok = batch["future_valid"] & self.agent_mask(batch)[..., None]
         n = fut_ok.float().sum().clamp(min=1)

@@ -17,7 +17,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
-import math
 import os
 import platform
 import time
@@ -29,7 +28,7 @@ from typing import Any
 import torch
 from torch.utils.data import default_collate
 
-from counterscene_env.scene.dataset import SceneWindowDataset
+from counterscene_env.scene.dataset import SceneWindowDataset, load_sources
 from counterscene_env.world_model.checkpoint import save_model
 from counterscene_env.world_model.config import preset as get_preset
 from counterscene_env.world_model.model import Normalization, WorldModel
@@ -152,11 +151,9 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     model_cfg = get_preset(cfg.preset).replace(**dict(cfg.model_overrides))
 
     probe = WorldModel(model_cfg)
-    datasets = [SceneWindowDataset(d, probe.window_config(cfg.window_stride)) for d in cfg.data]
-    sizes = [len(d.scenes) for d in datasets]
-    ds = SceneWindowDataset(
-        [s for d in datasets for s in d.scenes], probe.window_config(cfg.window_stride)
-    )
+    groups = [load_sources(d) for d in cfg.data]
+    sizes = [len(g) for g in groups]
+    ds = SceneWindowDataset([s for g in groups for s in g], probe.window_config(cfg.window_stride))
     train_rows, val_rows = _split(ds, sizes, cfg.val_fraction)
     if not train_rows:
         raise ValueError(f"no training windows in {list(cfg.data)}")
@@ -172,7 +169,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     )
     if state is not None:
         old, new = state["config"], _plain(cfg)
-        changed = sorted(k for k in (set(old) | set(new)) - {"out"} if old.get(k) != new.get(k))
+        changed = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
         if changed:
             raise ValueError(
                 f"{state_path} belongs to a run with different settings ({', '.join(changed)}); "
@@ -300,6 +297,4 @@ def _plain(cfg: TrainConfig) -> dict[str, Any]:
     d.pop("out")  # a moved or copied run directory still resumes
     d["steps"] = None  # a longer --steps continues the same run
     d["lr_decay_start"] = None  # and so may the tail of the schedule
-    return {
-        k: (v if not isinstance(v, float) or math.isfinite(v) else str(v)) for k, v in d.items()
-    }
+    return d
