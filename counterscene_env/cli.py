@@ -7,6 +7,7 @@ Subcommands import what they need when they run, so ``counterscene --help`` is i
 - ``train``: train a world model on dataset directories (resumable).
 - ``evaluate-model``: open-loop ADE/FDE/off-road of a world model vs constant velocity.
 - ``bench``: latency and FLOPs of a world model's sampling call.
+- ``stress``: stress-test an ego planner against guided world-model traffic (paper's table).
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -118,6 +118,17 @@ def _parser() -> argparse.ArgumentParser:
         metavar="KEY=VALUE",
         help="override a model config field of the preset (repeatable), e.g. --set d_model=96",
     )
+    tr.add_argument(
+        "--init", metavar="DIR", help="start from this model's weights ('default': shipped)"
+    )
+    tr.add_argument(
+        "--perturb",
+        type=float,
+        default=0.0,
+        help="probability of perturbing a non-ego history (closed-loop robustness; default 0)",
+    )
+    tr.add_argument("--perturb-lateral", type=float, default=1.0, help="largest shift, m (1.0)")
+    tr.add_argument("--perturb-heading", type=float, default=0.15, help="largest turn, rad (0.15)")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
     tr.set_defaults(func=_cmd_train)
 
@@ -162,7 +173,123 @@ def _parser() -> argparse.ArgumentParser:
     be.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
     be.add_argument("--json", action="store_true", help="print one JSON object")
     be.set_defaults(func=_cmd_bench)
+
+    st = sub.add_parser(
+        "stress",
+        help="stress-test an ego planner against guided world-model traffic",
+        description=(
+            "Run --episodes closed-loop episodes (scene and noise of episode i from seed "
+            "--seed + i): the world model drives traffic, --planner drives the ego, and the "
+            "adversary picked by --selector is steered by --guidance. Prints the paper's table "
+            "row: ADE, FDE, ORR, HBR, CR for 1-4 s, 5-7 s, 8-10 s and per second."
+        ),
+    )
+    st.add_argument(
+        "--scenario",
+        required=True,
+        help="highway, merge, intersection, roundabout, or scenarionet:DIR",
+    )
+    st.add_argument("--episodes", type=int, default=50, help="episodes (default 50)")
+    st.add_argument("--seed", type=int, default=100000, help="seed of episode 0 (default 100000)")
+    st.add_argument(
+        "--planner", default="idm", help="ego planner: idm, constant_velocity, log (default idm)"
+    )
+    st.add_argument(
+        "--selector",
+        default="causal",
+        choices=("causal", "random", "distance", "ttc"),
+        help="adversary selection (default causal)",
+    )
+    st.add_argument(
+        "--guidance",
+        default="full",
+        choices=(
+            "full",
+            "no_jerk",
+            "no_conflict_aware",
+            "no_progressive",
+            "no_adaptive",
+            "minimal",
+            "none",
+        ),
+        help="guidance preset (default full)",
+    )
+    st.add_argument(
+        "--source",
+        default="log",
+        choices=("log", "model"),
+        help="select on the factual future (log) or re-select on the model's prediction",
+    )
+    st.add_argument(
+        "--samples", type=int, default=4, help="samples per replan, best by guidance loss (4)"
+    )
+    st.add_argument("--duration", type=float, default=10.0, help="closed-loop seconds (10)")
+    st.add_argument("--replan-every", type=int, default=5, help="steps between replans (5)")
+    st.add_argument(
+        "--paper-gates",
+        action="store_true",
+        help="the paper's selection (no strict gates: parked or far adversaries allowed)",
+    )
+    st.add_argument("--batch", type=int, default=4, help="episodes advanced together (4)")
+    st.add_argument("--model", default="default", help="model directory (default: shipped)")
+    st.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    st.add_argument("--out", help="also write DIR/metrics.json and DIR/episodes.jsonl")
+    st.add_argument("--quiet", action="store_true", help="no progress bar")
+    st.set_defaults(func=_cmd_stress)
     return parser
+
+
+def _cmd_stress(args: argparse.Namespace) -> int:
+    from counterscene_env.sim import SimConfig
+    from counterscene_env.stress import StressConfig, run_episodes, summarize, write_outputs
+
+    sim = SimConfig(
+        duration=args.duration,
+        replan_every=args.replan_every,
+        num_samples=args.samples,
+        selector=args.selector,
+        selection_source=args.source,
+        strict_gates=not args.paper_gates,
+        guidance=args.guidance,
+    )
+    config = StressConfig(
+        scenario=args.scenario,
+        episodes=args.episodes,
+        seed=args.seed,
+        planner=args.planner,
+        sim=sim,
+        batch=args.batch,
+    )
+    model = _load_model(args.model)
+    records = run_episodes(model, config, progress=not args.quiet)
+    summary = summarize(records, config)
+    if args.out:
+        write_outputs(args.out, summary, records)
+    if args.json:
+        print(json.dumps(json_safe(summary)))
+        return 0
+    print(
+        f"{summary['episodes']} episodes of {args.scenario}, planner {args.planner}, selector "
+        f"{args.selector}, guidance {args.guidance} (source {args.source}, "
+        f"{args.samples} samples)"
+    )
+    print(f"{'':8s}" + "".join(f"{k:>8s}" for k in ("ADE", "FDE", "ORR", "HBR", "CR")))
+    for name, row in summary["horizons"].items():
+        print(
+            f"{name:8s}"
+            + "".join(f"{_fmt(row[k]):>8s}" for k in ("ADE", "FDE", "ORR", "HBR", "CR"))
+        )
+    print(
+        f"episode CR {_fmt(summary['cr'])}, ego-adversary CR {_fmt(summary['cr_ego_adversary'])}, "
+        f"non-ego CR {_fmt(summary['cr_non_ego'])}, ORR {_fmt(summary['orr'])}, "
+        f"mean min TTC {_fmt(summary['mean_min_ttc'])} s, min clearance to adversary "
+        f"{_fmt(summary['mean_min_clearance_adversary'])} m, fallbacks {summary['fallbacks']}"
+    )
+    print(
+        f"{_fmt(summary['seconds_per_episode'])} s per episode, "
+        f"{_fmt(summary['seconds_per_replan'])} s per replan"
+    )
+    return 0
 
 
 def _parse_overrides(items: list[str]) -> dict:
@@ -201,9 +328,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
         checkpoint_every=args.checkpoint_every,
         seed=args.seed,
         device=args.device,
+        init=args.init,
+        perturb=args.perturb,
+        perturb_lateral=args.perturb_lateral,
+        perturb_heading=args.perturb_heading,
     )
     record = train(cfg, progress=not args.quiet)
-    print(json.dumps(_finite(record)))
+    print(json.dumps(json_safe(record)))
     return 0
 
 
@@ -217,6 +348,7 @@ def _load_model(name: str):
 
 
 def _cmd_evaluate_model(args: argparse.Namespace) -> int:
+    from counterscene_env.scene.datagen import iter_scenes
     from counterscene_env.world_model.evaluate import evaluate_model
 
     model = _load_model(args.model)
@@ -230,12 +362,10 @@ def _cmd_evaluate_model(args: argparse.Namespace) -> int:
             seed = scenes[-1].metadata["seed"] + 1
     else:
         if args.scenarionet:
-            scenes = [s for s, _ in _iter_scenes(Path(args.scenarionet))]
+            scenes = [s for s, _ in iter_scenes(Path(args.scenarionet))]
         else:  # the first --scenes of each dataset
             scenes = [
-                s
-                for d in args.data
-                for s, _ in itertools.islice(_iter_scenes(Path(d)), args.scenes)
+                s for d in args.data for s, _ in itertools.islice(iter_scenes(Path(d)), args.scenes)
             ]
     result = evaluate_model(model, scenes, args.samples, seed=0, progress=not args.quiet)
     result["source"] = (
@@ -244,7 +374,7 @@ def _cmd_evaluate_model(args: argparse.Namespace) -> int:
         else str(args.scenarionet or args.data)
     )
     if args.json:
-        print(json.dumps(_finite(result)))
+        print(json.dumps(json_safe(result)))
         return 0
     print(
         f"{result['scenes']} scenes, {result['agents']} agents, {result['samples']} samples, "
@@ -281,7 +411,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     result = bench_model(model, runs=args.runs, samples=args.samples, threads=args.threads)
     result["model"] = name
     if args.json:
-        print(json.dumps(_finite(result)))
+        print(json.dumps(json_safe(result)))
         return 0
     print(
         f"{name}: {result['agents']} agents, {result['sampling_steps']} {result['sampler']} steps, "
@@ -336,9 +466,10 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     import numpy as np
 
     from counterscene_env.metrics import evaluate_scene
+    from counterscene_env.scene.datagen import iter_scenes
 
     rows = []
-    for scene, load_time in _iter_scenes(Path(args.path)):
+    for scene, load_time in iter_scenes(Path(args.path)):
         whole = scene.replace(current_index=0)
         m = evaluate_scene(whole, smooth=args.smooth)
         rows.append(
@@ -369,7 +500,7 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
 
     summary = {"scenes": len(rows)} | {k: stat(k) for k in _INSPECT_COLUMNS[1:] if k != "steps"}
     if args.json:
-        print(json.dumps(_finite({"summary": summary, "scenes": rows})))
+        print(json.dumps(json_safe({"summary": summary, "scenes": rows})))
         return 0
     cols = _INSPECT_COLUMNS
     print("  ".join(f"{c:>14}" for c in cols))
@@ -400,49 +531,14 @@ _INSPECT_COLUMNS = (
 )
 
 
-def _iter_scenes(path: Path):
-    """Yield (scene, seconds to produce it) from any supported PATH."""
-    from counterscene_env.scene.datagen import MANIFEST, read_manifest, shard_paths
-    from counterscene_env.scene.scenarionet import load_scenarionet
-    from counterscene_env.scene.shards import load_scenes
-
-    if path.is_dir() and (path / MANIFEST).is_file():
-        read_manifest(path)
-        for shard in shard_paths(path):
-            for scene in load_scenes(shard):
-                yield scene, float(scene.metadata.get("generation_time_s", math.nan))
-    elif path.is_dir():
-        files = sorted(path.rglob("*.pkl"))
-        if not files:
-            raise FileNotFoundError(f"{path}: no dataset manifest and no .pkl files")
-        for f in files:
-            start = time.perf_counter()
-            scene = load_scenarionet(f)
-            yield scene, time.perf_counter() - start
-    elif path.suffix == ".pkl":
-        start = time.perf_counter()
-        scene = load_scenarionet(path)
-        yield scene, time.perf_counter() - start
-    elif path.is_file():
-        for scene in load_scenes(path):
-            yield scene, float(scene.metadata.get("generation_time_s", math.nan))
-    else:
-        raise FileNotFoundError(f"{path}: no such file or directory")
-
-
 def _fmt(v) -> str:
     return f"{v:.4g}" if isinstance(v, float) else str(v)
 
 
-def _finite(obj):
-    """JSON has no NaN or inf: write them as null."""
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_finite(v) for v in obj]
-    return obj
+def json_safe(obj):
+    from counterscene_env.metrics import json_safe as safe  # lazy: keeps --help instant
+
+    return safe(obj)
 
 
 if __name__ == "__main__":

@@ -594,3 +594,14 @@ def aggregate(records: Sequence[dict]) -> dict:
         "groups": groups,
         "overall": overall,
     }
+
+
+def json_safe(obj):
+    """``obj`` with NaN and inf floats as None (JSON has neither), dicts and lists walked."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    return obj

@@ -18,12 +18,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from pathlib import Path
 
+from counterscene_env.scene.core import Scene
 from counterscene_env.scene.shards import ShardError, load_scenes, save_scenes
 
 MANIFEST = "manifest.json"
@@ -350,3 +352,34 @@ def _save_block(out: str, k: int, scenes: list, rejected: list, ids: list) -> di
         "num_steps": [s.num_steps for s in scenes],
         "gen_time_s": [round(float(s.metadata.get("generation_time_s", 0.0)), 4) for s in scenes],
     }
+
+
+def iter_scenes(path: str | os.PathLike) -> Iterator[tuple[Scene, float]]:
+    """Yield (scene, seconds it took to produce) from a dataset directory, a shard file, a
+    ScenarioNet ``.pkl`` file, or a directory of them (sorted, recursively)."""
+    from counterscene_env.scene.scenarionet import load_scenarionet
+
+    path = Path(path)
+
+    if path.is_dir() and (path / MANIFEST).is_file():
+        read_manifest(path)
+        for shard in shard_paths(path):
+            for scene in load_scenes(shard):
+                yield scene, float(scene.metadata.get("generation_time_s", math.nan))
+    elif path.is_dir():
+        files = sorted(path.rglob("*.pkl"))
+        if not files:
+            raise FileNotFoundError(f"{path}: no dataset manifest and no .pkl files")
+        for f in files:
+            start = time.perf_counter()
+            scene = load_scenarionet(f)
+            yield scene, time.perf_counter() - start
+    elif path.suffix == ".pkl":
+        start = time.perf_counter()
+        scene = load_scenarionet(path)
+        yield scene, time.perf_counter() - start
+    elif path.is_file():
+        for scene in load_scenes(path):
+            yield scene, float(scene.metadata.get("generation_time_s", math.nan))
+    else:
+        raise FileNotFoundError(f"{path}: no such file or directory")

@@ -23,6 +23,7 @@ key                 shape, dtype        meaning
 ``origin``          [3] float64         world x [m], y [m], yaw [rad] of the frame
 ``scene_index``     [] int64            row of the scene in this dataset
 ``t0``              [] int64            the "now" step in that scene
+``rows``            [K] int64           scene row of each window agent (-1: padding)
 ==================  ==================  =====================================================
 
 Invalid entries (padding, frames where an agent is absent) are zero, never NaN.
@@ -92,7 +93,7 @@ class SceneWindowDataset(Dataset):
         self.scenes: list[Scene] = load_sources(sources)
         c = self.config
         self._segments = [
-            _lane_segments(s, c.lane_segment_length, c.lane_points) for s in self.scenes
+            lane_segments(s, c.lane_segment_length, c.lane_points) for s in self.scenes
         ]
         self.index: list[tuple[int, int]] = []
         for i, s in enumerate(self.scenes):
@@ -110,63 +111,102 @@ class SceneWindowDataset(Dataset):
 
     def window(self, scene_index: int, t0: int) -> dict[str, np.ndarray]:
         """The window of one scene at one step, as numpy arrays (see the module docstring)."""
-        c = self.config
-        scene = self.scenes[scene_index]
-        K, H, F = c.num_agents, c.history_steps, c.future_steps
-        rows = scene.nearest_indices(K, t0, types=("vehicle",))
-        origin = np.array([*scene.positions[scene.ego_index, t0], scene.yaws[scene.ego_index, t0]])
-        if c.agent_radius is not None:
-            dist = np.linalg.norm(scene.positions[rows, t0] - origin[:2], axis=-1)
-            rows = rows[dist <= c.agent_radius]  # the ego (distance 0) always stays
-        to_ego = _frame_transform(origin)
+        window = make_window(self.scenes[scene_index], t0, self.config, self._segments[scene_index])
+        window["scene_index"] = np.int64(scene_index)
+        return window
 
-        def states(t_lo: int, t_hi: int) -> tuple[np.ndarray, np.ndarray]:
-            out = np.zeros((K, t_hi - t_lo, 4), np.float32)
-            ok = np.zeros((K, t_hi - t_lo), bool)
-            # Frames outside the log stay invalid (zero) rather than being invented.
-            lo, hi = max(t_lo, 0), min(t_hi, scene.num_steps)
-            sl = slice(lo - t_lo, hi - t_lo)
-            ok[: len(rows), sl] = scene.valid[rows, lo:hi]
-            xy = to_ego(scene.positions[rows, lo:hi])
-            yaw = _wrap(scene.yaws[rows, lo:hi] - origin[2])
-            out[: len(rows), sl] = np.concatenate(
-                [xy, yaw[..., None], scene.speeds[rows, lo:hi, None]], -1
-            )
-            out[~ok] = 0.0
+
+def make_window(
+    scene: Scene,
+    t0: int,
+    config: WindowConfig,
+    segments: tuple[np.ndarray, np.ndarray] | None = None,
+    include: Sequence[int] = (),
+) -> dict[str, np.ndarray]:
+    """One window (module docstring) of ``scene`` at step ``t0``.
+
+    Args:
+        scene: any scene; only frames ``t0 - history_steps + 1 .. t0 + future_steps`` are read
+            (frames outside the log stay invalid).
+        t0: the "now" step.
+        config: window sizes.
+        segments: ``lane_segments(scene, ...)`` when the caller already cut them (they depend
+            only on the road, so a closed loop cuts them once per episode).
+        include: agent rows that must be in the window whatever their distance (the closed
+            loop keeps the adversary in); they follow the ego, before the nearest others.
+
+    Returns:
+        The item dict of the module docstring plus ``rows [K]`` int64: the scene row of each
+        window agent (-1 for padding). ``scene_index`` is 0.
+    """
+    c = config
+    K, H, F = c.num_agents, c.history_steps, c.future_steps
+    origin = np.array([*scene.positions[scene.ego_index, t0], scene.yaws[scene.ego_index, t0]])
+    nearest = scene.nearest_indices(scene.num_agents, t0, types=("vehicle",))
+    if c.agent_radius is not None:
+        dist = np.linalg.norm(scene.positions[nearest, t0] - origin[:2], axis=-1)
+        nearest = nearest[dist <= c.agent_radius]  # the ego (distance 0) always stays
+    forced = [int(i) for i in include if i != scene.ego_index and scene.valid[i, t0]]
+    rest = [int(i) for i in nearest[1:] if int(i) not in forced]
+    rows = np.array([scene.ego_index, *forced, *rest], dtype=np.int64)[:K]
+    to_ego = _frame_transform(origin)
+
+    def states(t_lo: int, t_hi: int) -> tuple[np.ndarray, np.ndarray]:
+        out = np.zeros((K, t_hi - t_lo, 4), np.float32)
+        ok = np.zeros((K, t_hi - t_lo), bool)
+        # Frames outside the log stay invalid (zero) rather than being invented.
+        lo, hi = max(t_lo, 0), min(t_hi, scene.num_steps)
+        if lo >= hi:
             return out, ok
+        sl = slice(lo - t_lo, hi - t_lo)
+        ok[: len(rows), sl] = scene.valid[rows, lo:hi]
+        xy = to_ego(scene.positions[rows, lo:hi])
+        yaw = _wrap(scene.yaws[rows, lo:hi] - origin[2])
+        out[: len(rows), sl] = np.concatenate(
+            [xy, yaw[..., None], scene.speeds[rows, lo:hi, None]], -1
+        )
+        out[~ok] = 0.0
+        return out, ok
 
-        history, history_valid = states(t0 - H + 1, t0 + 1)
-        future, future_valid = states(t0 + 1, t0 + 1 + F)
-        extents = np.zeros((K, 2), np.float32)
-        extents[: len(rows)] = scene.extents[rows]
-        agent_valid = np.zeros(K, bool)
-        agent_valid[: len(rows)] = True
+    history, history_valid = states(t0 - H + 1, t0 + 1)
+    future, future_valid = states(t0 + 1, t0 + 1 + F)
+    extents = np.zeros((K, 2), np.float32)
+    extents[: len(rows)] = scene.extents[rows]
+    agent_valid = np.zeros(K, bool)
+    agent_valid[: len(rows)] = True
+    window_rows = np.full(K, -1, np.int64)
+    window_rows[: len(rows)] = rows
 
-        seg, widths = self._segments[scene_index]
-        lanes = np.zeros((c.num_lanes, c.lane_points, 2), np.float32)
-        lane_valid = np.zeros(c.num_lanes, bool)
-        lane_widths = np.zeros(c.num_lanes, np.float32)
-        if len(seg):
-            dist = np.linalg.norm(seg - origin[:2], axis=-1).min(axis=1)
-            near = np.flatnonzero(dist <= c.map_radius)
-            near = near[np.argsort(dist[near], kind="stable")][: c.num_lanes]
-            lanes[: len(near)] = to_ego(seg[near])
-            lane_valid[: len(near)] = True
-            lane_widths[: len(near)] = widths[near]
-        return {
-            "history": history,
-            "history_valid": history_valid,
-            "future": future,
-            "future_valid": future_valid,
-            "extents": extents,
-            "agent_valid": agent_valid,
-            "map": lanes,
-            "map_valid": lane_valid,
-            "map_widths": lane_widths,
-            "origin": origin,
-            "scene_index": np.int64(scene_index),
-            "t0": np.int64(t0),
-        }
+    seg, widths = (
+        segments
+        if segments is not None
+        else lane_segments(scene, c.lane_segment_length, c.lane_points)
+    )
+    lanes = np.zeros((c.num_lanes, c.lane_points, 2), np.float32)
+    lane_valid = np.zeros(c.num_lanes, bool)
+    lane_widths = np.zeros(c.num_lanes, np.float32)
+    if len(seg):
+        dist = np.linalg.norm(seg - origin[:2], axis=-1).min(axis=1)
+        near = np.flatnonzero(dist <= c.map_radius)
+        near = near[np.argsort(dist[near], kind="stable")][: c.num_lanes]
+        lanes[: len(near)] = to_ego(seg[near])
+        lane_valid[: len(near)] = True
+        lane_widths[: len(near)] = widths[near]
+    return {
+        "history": history,
+        "history_valid": history_valid,
+        "future": future,
+        "future_valid": future_valid,
+        "extents": extents,
+        "agent_valid": agent_valid,
+        "map": lanes,
+        "map_valid": lane_valid,
+        "map_widths": lane_widths,
+        "origin": origin,
+        "rows": window_rows,
+        "scene_index": np.int64(0),
+        "t0": np.int64(t0),
+    }
 
 
 def load_sources(
@@ -198,7 +238,7 @@ def _frame_transform(origin: np.ndarray):
     return apply
 
 
-def _lane_segments(scene: Scene, length: float, points: int) -> tuple[np.ndarray, np.ndarray]:
+def lane_segments(scene: Scene, length: float, points: int) -> tuple[np.ndarray, np.ndarray]:
     """Cut every centre line into pieces of ``length`` m resampled to ``points`` points.
 
     Returns ``[S, points, 2]`` m (world frame) and ``[S]`` widths m. A last piece shorter than

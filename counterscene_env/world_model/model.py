@@ -17,7 +17,7 @@ trajectories carry courses in their yaw channel; the body heading is an input on
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -294,7 +294,7 @@ class WorldModel(nn.Module):
         self,
         batch: dict[str, torch.Tensor],
         num_samples: int = 1,
-        generator: torch.Generator | None = None,
+        generator: torch.Generator | Sequence[torch.Generator] | None = None,
         sampler: str | None = None,
         steps: int | None = None,
         eta: float | None = None,
@@ -306,7 +306,9 @@ class WorldModel(nn.Module):
         Args:
             batch: scene windows (module docstring); ``future`` is not needed.
             num_samples: S samples per scene, drawn together as a batch of ``B * S``.
-            generator: the only source of randomness (initial noise and every step's noise).
+            generator: the only source of randomness (initial noise and every step's noise);
+                a sequence of B generators gives each scene its own, so a scene's samples do
+                not depend on which other scenes share the batch.
             sampler: ``"ddim"`` (strided, ``steps`` steps) or ``"ddpm"`` (all K steps); default
                 from the config.
             steps: strided sampler steps; default from the config.
@@ -342,12 +344,25 @@ class WorldModel(nn.Module):
 
         self.scheduler.set_timesteps(steps)
         shape = (B * num_samples, K, c.action_tokens, 2)
-        x = torch.randn(shape, generator=generator, device=device)
-        for t in self.scheduler.timesteps.tolist():
+        per_scene = isinstance(generator, Sequence)
+        if per_scene and len(generator) != B:
+            raise ValueError(f"{len(generator)} generators for a batch of {B} scenes")
+
+        def randn() -> torch.Tensor:
+            if not per_scene:
+                return torch.randn(shape, generator=generator, device=device)
+            one = (num_samples, *shape[1:])
+            return torch.cat([torch.randn(one, generator=g, device=device) for g in generator])
+
+        x = randn()
+        timesteps = self.scheduler.timesteps.tolist()
+        for t in timesteps:
             tt = torch.full((B * num_samples,), t, device=device, dtype=torch.long)
             with torch.no_grad():
                 out = self.denoiser(x, tt, ctx)
-            x = self.scheduler.step(out, t, x, generator, eta, hook).prev_sample.detach()
+            # The last step adds no noise; eta = 0 never does.
+            noise = randn() if per_scene and eta > 0 and t != timesteps[-1] else None
+            x = self.scheduler.step(out, t, x, generator, eta, hook, noise).prev_sample.detach()
         # Padding agents get zero physical actions: a clean, finite "keep going" plan.
         still = self.normalize(torch.zeros(2, device=device))
         x = torch.where(valid.repeat_interleave(num_samples, 0)[..., None, None], x, still)

@@ -150,6 +150,7 @@ class CosineScheduler:
         generator: torch.Generator | None = None,
         eta: float = 1.0,
         guidance=None,
+        noise: torch.Tensor | None = None,
     ) -> SchedulerOutput:
         """One reverse step from ``t`` to the next step in ``timesteps``.
 
@@ -161,15 +162,19 @@ class CosineScheduler:
             eta: DDIM noise scale (1 = ancestral).
             guidance: optional ``callable(mean, sigma, t, x0) -> mean`` that may move the
                 posterior mean before the noise is added (the counterfactual guidance hook).
+            noise: the step's standard normal noise, shaped like ``sample``, instead of drawing
+                it from ``generator`` (diffusers' ``variance_noise``; lets a batch of scenes
+                draw from one generator each).
         """
         x0 = self.predict_original(model_output, t, sample)
         mean, sigma = self.posterior(x0, t, sample, eta)
         if guidance is not None:
             mean = guidance(mean, sigma, t, x0)
         if sigma > 0:
-            noise = torch.randn(
-                sample.shape, generator=generator, device=sample.device, dtype=sample.dtype
-            )
+            if noise is None:
+                noise = torch.randn(
+                    sample.shape, generator=generator, device=sample.device, dtype=sample.dtype
+                )
             prev = mean + sigma * noise
         else:
             prev = mean

@@ -1,0 +1,155 @@
+"""Reference ego planners for stress runs and tests.
+
+A planner is an external policy for the ego: ``reset(scene, seed)`` once per episode, then
+``act(state) -> [2]`` (acceleration m/s^2, steering rad) every step, from the
+:class:`~counterscene_env.sim.WorldState` it is given. The closed loop feeds the action through
+highway-env's bicycle model. A planner with ``replays_log = True`` instead gives the ego's next
+state, ``next_state(state) -> [4]`` (x m, y m, yaw rad, speed m/s), written as is.
+
+- :class:`IDMPlanner`: a reactive lane follower with highway-env's own ``IDMVehicle`` logic
+  (IDM on the vehicle ahead in its lane, lane-keeping steering, no lane changes) on the scene's
+  road, along the lanes of the logged ego's route.
+- :class:`ConstantVelocityPlanner`: zero acceleration and steering.
+- :class:`LogReplayPlanner`: the factual ego, non-reactive (the paper's protocol).
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+from highway_env.road.road import Road
+from highway_env.vehicle.behavior import IDMVehicle
+from highway_env.vehicle.kinematics import Vehicle
+
+from counterscene_env.scene.core import Scene
+from counterscene_env.sim import WorldState
+
+
+class Planner(Protocol):
+    """What the stress harness needs of an ego policy (module docstring)."""
+
+    name: str
+    replays_log: bool
+
+    def reset(self, scene: Scene, seed: int) -> None: ...
+
+    def act(self, state: WorldState) -> np.ndarray: ...
+
+
+class ConstantVelocityPlanner:
+    """Keeps speed and heading: acceleration 0, steering 0."""
+
+    name = "constant_velocity"
+    replays_log = False
+
+    def reset(self, scene: Scene, seed: int) -> None:
+        pass
+
+    def act(self, state: WorldState) -> np.ndarray:
+        return np.zeros(2)
+
+
+class LogReplayPlanner:
+    """The factual ego: its logged state at the next step, whatever the traffic does."""
+
+    name = "log"
+    replays_log = True
+
+    def reset(self, scene: Scene, seed: int) -> None:
+        self.scene = scene
+
+    def act(self, state: WorldState) -> np.ndarray:
+        raise TypeError("LogReplayPlanner writes states: call next_state()")
+
+    def next_state(self, state: WorldState) -> np.ndarray:
+        s, e, t1 = self.scene, self.scene.ego_index, state.t + 1
+        if not s.valid[e, t1]:  # the log lost the ego: hold its last state
+            return np.array([*state.positions[e], state.yaws[e], state.speeds[e]])
+        return np.array([*s.positions[e, t1], s.yaws[e, t1], s.speeds[e, t1]])
+
+
+class IDMPlanner:
+    """highway-env's IDM lane follower driving the ego (module docstring).
+
+    Args:
+        target_speed: desired speed [m/s]; default: the fastest the ego drove in its 3 s of
+            history (at least ``min_target_speed``).
+        min_target_speed: floor of the default target speed [m/s].
+    """
+
+    name = "idm"
+    replays_log = False
+
+    def __init__(self, target_speed: float | None = None, min_target_speed: float = 5.0) -> None:
+        self.target_speed = target_speed
+        self.min_target_speed = min_target_speed
+
+    def reset(self, scene: Scene, seed: int) -> None:
+        self.scene = scene
+        self.dt = scene.dt
+        net = scene.road.network
+        # Connected lanes: see the car ahead across a lane-segment boundary (junction entries).
+        self.road = Road(
+            network=net,
+            vehicles=[],
+            np_random=np.random.default_rng(seed),
+            neighbour_vehicles_connected_lanes=True,
+        )
+        e, t = scene.ego_index, scene.current_index
+        history = scene.speeds[e, : t + 1][scene.valid[e, : t + 1]]
+        target = self.target_speed
+        if target is None:
+            target = max(float(history.max()), self.min_target_speed)
+        self.vehicle = IDMVehicle(
+            self.road,
+            scene.positions[e, t].copy(),
+            float(scene.yaws[e, t]),
+            float(scene.speeds[e, t]),
+            target_speed=target,
+            enable_lane_change=False,
+        )
+        self.vehicle.LENGTH, self.vehicle.WIDTH = (float(x) for x in scene.extents[e])
+        # Follow the logged ego's route: plan to the end node of the lane it ends on.
+        last = np.flatnonzero(scene.valid[e])[-1]
+        goal = net.get_closest_lane_index(scene.positions[e, last], scene.yaws[e, last])
+        self.vehicle.plan_route_to(goal[1])
+        self.others = {
+            i: Vehicle(self.road, scene.positions[i, t].copy(), float(scene.yaws[i, t]), 0.0)
+            for i in range(scene.num_agents)
+            if i != e
+        }
+        self.road.vehicles = [self.vehicle]
+
+    def act(self, state: WorldState) -> np.ndarray:
+        v, e = self.vehicle, state.ego_index
+        v.position = np.array(state.positions[e], dtype=np.float64)
+        v.heading, v.speed = float(state.yaws[e]), float(state.speeds[e])
+        v.on_state_update()  # its lane, as highway-env would after a step
+        present = []
+        for i, other in self.others.items():
+            if state.valid[i]:
+                other.position = np.array(state.positions[i], dtype=np.float64)
+                other.heading, other.speed = float(state.yaws[i]), float(state.speeds[i])
+                present.append(other)
+        self.road.vehicles = [v, *present]
+        v.act()
+        acc, steer = float(v.action["acceleration"]), float(v.action["steering"])
+        # IDM may ask a stopped car to "brake" further; a lane follower does not reverse.
+        acc = max(acc, -v.speed / self.dt)
+        return np.array([acc, steer])
+
+
+PLANNERS = {
+    "idm": IDMPlanner,
+    "constant_velocity": ConstantVelocityPlanner,
+    "log": LogReplayPlanner,
+}
+
+
+def make_planner(name: str) -> Planner:
+    """A planner by name (:data:`PLANNERS`; ``cv`` and ``replay`` are aliases)."""
+    name = {"cv": "constant_velocity", "replay": "log"}.get(name, name)
+    if name not in PLANNERS:
+        raise ValueError(f"unknown planner {name!r}; valid: {sorted(PLANNERS)}")
+    return PLANNERS[name]()

@@ -1,0 +1,644 @@
+"""The closed loop: the world model drives traffic, an external policy drives the ego, and the
+causally selected adversary is steered by counterfactual guidance (DESIGN 2).
+
+One :class:`ClosedLoop` advances B episodes together, so that every replan is one batched
+world-model call (scenes are windows of a common agent count K, padded). Per episode:
+
+- **Start.** At the scene's ``current_index`` (3 s of history), from the log. The adversary is
+  selected on the factual future (``selection_source="log"``, the paper) or re-selected at
+  every replan from the world model's own unguided prediction (``"model"``).
+- **Every step** (dt = 0.1 s): the ego advances by its action through a highway-env
+  ``Vehicle`` (kinematic bicycle: acceleration m/s^2, steering rad), or is written from a
+  given state (log replay); the other agents advance along their current plans.
+- **Every ``replan_every`` steps** (and at the start): the world model re-plans everyone from
+  the simulated history (the ego's real past included) in the ego's frame; at each denoising
+  step the adversary's rows alone are nudged by the guidance; the sample with the lowest
+  guidance loss of ``num_samples`` is kept. The ego's predicted row is only the guidance's
+  reference: the ego follows its policy.
+- **Who moves how.** An agent exists at a step exactly when the log says so (agents leave and
+  enter as recorded). A present agent follows its current plan; one that was never planned
+  (outside the model's window: beyond ``agent_radius`` or the K nearest) replays the log;
+  one that just entered starts at its logged state; one whose plan ran out keeps its speed
+  and course.
+- **Every step records** ego collisions (oriented boxes), off-road, the ego's signed
+  longitudinal acceleration and hard braking, the smallest constant-velocity TTC, and the
+  adversary's distance; :meth:`ClosedLoop.scene` returns the simulated :class:`Scene` for
+  :mod:`counterscene_env.metrics`.
+
+Randomness: each episode has its own ``torch.Generator`` and ``numpy`` Generator, both seeded
+from its seed at :meth:`ClosedLoop.reset`, so an episode does not depend on which other
+episodes share its batch; same seed and actions give the same episode on CPU.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from highway_env.road.road import Road
+from highway_env.vehicle.kinematics import Vehicle
+
+from counterscene_env import geometry
+from counterscene_env.adversary.guidance import (
+    GuidanceConfig,
+    guidance_preset,
+    make_guidance_hook,
+    make_targets,
+    sample_losses,
+)
+from counterscene_env.adversary.selection import METHODS, Conflict, Selection, select_adversary
+from counterscene_env.scene.core import Scene
+from counterscene_env.scene.dataset import lane_segments, make_window
+from counterscene_env.world_model.model import WorldModel
+from counterscene_env.world_model.realism import plan_cost
+
+#: Hard-braking threshold on the ego's longitudinal acceleration, m/s^2 (paper: -3.0).
+HARD_BRAKE = -3.0
+#: How an agent moved into a step (``ClosedLoop.motion_source``): absent or history, its
+#: world-model plan, its log (never planned, or just entered), constant velocity (plan ran
+#: out), the ego's policy.
+MOTION_SOURCES = ("none", "plan", "log", "coast", "ego")
+#: Horizon of the per-step TTC, s.
+TTC_HORIZON = 5.0
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Closed-loop settings.
+
+    Attributes:
+        duration: closed-loop length after "now" [s]; capped by the log's length.
+        replan_every: steps between world-model replans (5 = 0.5 s).
+        num_samples: samples per replan; the one with the lowest guidance loss plus
+            realism cost is kept (paper protocol: 16).
+        selector: ``causal`` (the paper's conflict mining) or a baseline: ``random``,
+            ``distance`` (nearest), ``ttc`` (smallest time to collision).
+        selection_source: ``log`` (mined once on the factual future) or ``model`` (mined at
+            every replan on the world model's unguided prediction).
+        strict_gates: the strict selection gates of DESIGN 3.4 (d_min < 15 m, arrival gap
+            < 1.5 s, encounter before the last step, adversary moving); off in the paper.
+        guidance: a guidance preset name (``full``, ``no_jerk``, ``no_conflict_aware``,
+            ``no_progressive``, ``no_adaptive``, ``minimal``, ``none``).
+        sampler, sampling_steps, eta: the world model's sampler (None: the model's defaults).
+        map_guidance: step size of the world model's map guidance on every agent (None: the
+            model's default).
+        realism_weight: weight of the realism cost (agents overlapping or off their lanes,
+            ``world_model/realism.py``) in the choice among samples; 0: guidance loss only.
+    """
+
+    duration: float = 10.0
+    replan_every: int = 5
+    num_samples: int = 4
+    selector: str = "causal"
+    selection_source: str = "log"
+    strict_gates: bool = True
+    guidance: str = "full"
+    sampler: str | None = None
+    sampling_steps: int | None = None
+    eta: float | None = None
+    map_guidance: float | None = None
+    realism_weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not self.duration > 0:
+            raise ValueError(f"duration must be > 0 s, got {self.duration}")
+        if self.replan_every < 1:
+            raise ValueError(f"replan_every must be >= 1 step, got {self.replan_every}")
+        if self.num_samples < 1:
+            raise ValueError(f"num_samples must be >= 1, got {self.num_samples}")
+        if self.selector not in METHODS:
+            raise ValueError(f"unknown selector {self.selector!r}; valid: {list(METHODS)}")
+        if self.selection_source not in ("log", "model"):
+            raise ValueError(
+                f"selection_source must be 'log' or 'model', got {self.selection_source!r}"
+            )
+        guidance_preset(self.guidance)  # raises on an unknown name
+
+    @classmethod
+    def from_mapping(cls, values: Mapping) -> SimConfig:
+        """Build from a dict; unknown keys raise and name the valid ones."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - names)
+        if unknown:
+            raise ValueError(f"unknown simulation keys {unknown}; valid keys: {sorted(names)}")
+        return cls(**values)
+
+    @property
+    def guidance_config(self) -> GuidanceConfig:
+        return guidance_preset(self.guidance)
+
+
+@dataclass(frozen=True)
+class WorldState:
+    """A read-only snapshot of one episode at step ``t`` (what planners see).
+
+    Attributes:
+        t: absolute step of the scene's log.
+        positions: ``[N, 2]`` m; yaws ``[N]`` rad; speeds ``[N]`` m/s; valid ``[N]`` bool.
+        extents: ``[N, 2]`` m (length, width).
+        ego_index: the ego's row.
+        scene: the factual scene (road, ids, log).
+    """
+
+    t: int
+    positions: np.ndarray
+    yaws: np.ndarray
+    speeds: np.ndarray
+    valid: np.ndarray
+    extents: np.ndarray
+    ego_index: int
+    scene: Scene
+
+
+@dataclass
+class _Episode:
+    """Mutable state of one episode (see ClosedLoop)."""
+
+    factual: Scene
+    start: int
+    end: int
+    t: int
+    positions: np.ndarray  # [N, T, 2]
+    yaws: np.ndarray  # [N, T]
+    speeds: np.ndarray  # [N, T]
+    valid: np.ndarray  # [N, T] simulated steps so far (log validity)
+    source: np.ndarray  # [N, T] int8, how each agent moved into each step (MOTION_SOURCES)
+    ego: Vehicle
+    segments: tuple[np.ndarray, np.ndarray]
+    generator: torch.Generator
+    rng: np.random.Generator
+    selection: Selection
+    plan_positions: np.ndarray  # [N, F, 2]
+    plan_yaws: np.ndarray  # [N, F]
+    plan_speeds: np.ndarray  # [N, F]
+    plan_start: np.ndarray  # [N] step of plan index 0
+    planned: np.ndarray  # [N] bool
+    replans: int = 0
+    replan_seconds: float = 0.0  # this episode's share of the batched replan calls
+    records: list[dict] = field(default_factory=list)
+
+    @property
+    def conflict(self) -> Conflict | None:
+        return self.selection.conflict
+
+    @property
+    def adversary(self) -> int | None:
+        return None if self.conflict is None else self.conflict.agent
+
+    @property
+    def done(self) -> bool:
+        return self.t >= self.end
+
+
+class ClosedLoop:
+    """B closed-loop episodes advanced together (module docstring).
+
+    Args:
+        model: the world model (``counterscene_env.world_model.load_model()``).
+        config: closed-loop settings.
+
+    Usage::
+
+        loop = ClosedLoop(load_model(), SimConfig(guidance="full"))
+        loop.reset([scene], seeds=[0])
+        while not loop.done.all():
+            infos = loop.step(np.array([[0.0, 0.0]]))   # (acceleration m/s^2, steering rad)
+        simulated = loop.scene(0)
+    """
+
+    def __init__(self, model: WorldModel, config: SimConfig | None = None) -> None:
+        self.model = model.eval()
+        self.config = config or SimConfig()
+        self.guidance = self.config.guidance_config
+        self.window_config = model.window_config()
+        self.episodes: list[_Episode] = []
+
+    # ------------------------------------------------------------------ episode control
+    def reset(self, scenes: Sequence[Scene], seeds: Sequence[int]) -> list[dict]:
+        """Start one episode per scene; returns each one's first info dict (step ``now``)."""
+        if len(scenes) != len(seeds):
+            raise ValueError(f"{len(scenes)} scenes but {len(seeds)} seeds")
+        if not scenes:
+            raise ValueError("reset needs at least one scene")
+        self.episodes = [self._start(s, int(seed)) for s, seed in zip(scenes, seeds, strict=True)]
+        return [self._info(ep, replanned=False) for ep in self.episodes]
+
+    def _start(self, scene: Scene, seed: int) -> _Episode:
+        start = scene.current_index
+        steps = min(round(self.config.duration / scene.dt), scene.num_steps - 1 - start)
+        if steps < 1:
+            raise ValueError(f"scene {scene.scenario_id!r} has no future after step {start}")
+        if not scene.valid[scene.ego_index, start]:
+            raise ValueError(f"the ego of {scene.scenario_id!r} is not valid at step {start}")
+        end = start + steps
+        N, F = scene.num_agents, self.model.config.future_steps
+        valid = np.zeros((N, end + 1), bool)
+        valid[:, : start + 1] = scene.valid[:, : start + 1]
+        e = scene.ego_index
+        road = Road(network=scene.road.network, vehicles=[], np_random=np.random.default_rng(0))
+        ego = Vehicle(road, scene.positions[e, start].copy(), scene.yaws[e, start], 0.0)
+        ego.speed = float(scene.speeds[e, start])
+        ego.LENGTH, ego.WIDTH = (float(x) for x in scene.extents[e])  # the bicycle's wheelbase
+        rng = np.random.default_rng(seed)
+        c = self.window_config
+        ep = _Episode(
+            factual=scene,
+            start=start,
+            end=end,
+            t=start,
+            positions=scene.positions[:, : end + 1].copy(),
+            yaws=scene.yaws[:, : end + 1].copy(),
+            speeds=scene.speeds[:, : end + 1].copy(),
+            valid=valid,
+            source=np.zeros((N, end + 1), np.int8),
+            ego=ego,
+            segments=lane_segments(scene, c.lane_segment_length, c.lane_points),
+            generator=torch.Generator().manual_seed(seed),
+            rng=rng,
+            selection=Selection(self.config.selector, None, "not selected yet", 0),
+            plan_positions=np.zeros((N, F, 2)),
+            plan_yaws=np.zeros((N, F)),
+            plan_speeds=np.zeros((N, F)),
+            plan_start=np.zeros(N, np.int64),
+            planned=np.zeros(N, bool),
+        )
+        if not self.guidance.enabled:
+            ep.selection = Selection(self.config.selector, None, "guidance is off", 0)
+        elif self.config.selection_source == "log":
+            ep.selection = self._select(ep, *self._log_future(ep), start_step=start + 1)
+        return ep
+
+    @property
+    def done(self) -> np.ndarray:
+        """``[B]`` bool: episodes that reached their last step."""
+        return np.array([ep.done for ep in self.episodes], bool)
+
+    def state(self, b: int) -> WorldState:
+        """What episode ``b`` looks like at its current step."""
+        ep = self.episodes[b]
+        t = ep.t
+        return WorldState(
+            t=t,
+            positions=ep.positions[:, t].copy(),
+            yaws=ep.yaws[:, t].copy(),
+            speeds=ep.speeds[:, t].copy(),
+            valid=ep.valid[:, t].copy(),
+            extents=ep.factual.extents,
+            ego_index=ep.factual.ego_index,
+            scene=ep.factual,
+        )
+
+    def step(
+        self, actions: np.ndarray | None = None, ego_states: np.ndarray | None = None
+    ) -> list[dict]:
+        """Advance every unfinished episode by one step.
+
+        Args:
+            actions: ``[B, 2]`` ego actions, (acceleration m/s^2, steering rad), through the
+                highway-env bicycle model.
+            ego_states: ``[B, 4]`` (x m, y m, yaw rad, speed m/s) written as the ego's next
+                state instead (log replay); a row of NaN uses ``actions`` for that episode.
+
+        Returns:
+            One info dict per episode (module docstring; finished episodes repeat their last).
+        """
+        B = len(self.episodes)
+        if not B:
+            raise RuntimeError("call reset() before step()")
+        actions = _check_rows(actions, B, 2, "actions")
+        ego_states = _check_rows(ego_states, B, 4, "ego_states", allow_nan_rows=True)
+        active = [b for b, ep in enumerate(self.episodes) if not ep.done]
+        due = [
+            b
+            for b in active
+            if (self.episodes[b].t - self.episodes[b].start) % self.config.replan_every == 0
+        ]
+        if due:
+            self._replan(due)
+        infos = []
+        for b, ep in enumerate(self.episodes):
+            if ep.done:
+                infos.append(ep.records[-1] if ep.records else self._info(ep, False))
+                continue
+            state = None if ego_states is None else ego_states[b]
+            if state is not None and np.isnan(state).all():
+                state = None
+            if state is None and actions is None:
+                raise ValueError("step needs actions or ego_states for every running episode")
+            self._advance(ep, None if actions is None else actions[b], state)
+            info = self._info(ep, replanned=b in due)
+            ep.records.append(info)
+            infos.append(info)
+        return infos
+
+    # ------------------------------------------------------------------ selection
+    def _log_future(self, ep: _Episode) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        s, lo, hi = ep.factual, ep.start + 1, ep.end + 1
+        return s.positions[:, lo:hi], s.valid[:, lo:hi], s.speeds[:, lo:hi]
+
+    def _select(
+        self,
+        ep: _Episode,
+        positions: np.ndarray,
+        valid: np.ndarray,
+        speeds: np.ndarray,
+        start_step: int,
+        rows: np.ndarray | None = None,
+        yaws: np.ndarray | None = None,
+    ) -> Selection:
+        """Select on future tracks; ``rows`` maps their rows to scene rows (None: identity)."""
+        scene = ep.factual
+        rows = np.arange(scene.num_agents) if rows is None else rows
+        ego = int(np.flatnonzero(rows == scene.ego_index)[0])
+        sel = select_adversary(
+            self.config.selector,
+            positions,
+            valid,
+            ego,
+            speeds=speeds,
+            extents=scene.extents[rows],
+            yaws=yaws,
+            eligible=scene.agent_types[rows] == "vehicle",
+            dt=scene.dt,
+            start_step=start_step,
+            strict=self.config.strict_gates,
+            rng=ep.rng,
+        )
+        if sel.conflict is not None:  # back to scene rows
+            sel = dataclasses.replace(
+                sel, conflict=dataclasses.replace(sel.conflict, agent=int(rows[sel.conflict.agent]))
+            )
+        return sel
+
+    # ------------------------------------------------------------------ replanning
+    def _sim_scene(self, ep: _Episode) -> Scene:
+        """The simulated scene up to step ``t`` (later frames invalid)."""
+        valid = ep.valid.copy()
+        valid[:, ep.t + 1 :] = False
+        return ep.factual.replace(
+            positions=ep.positions, yaws=ep.yaws, speeds=ep.speeds, valid=valid
+        )
+
+    def _replan(self, due: list[int]) -> None:
+        started = time.perf_counter()
+        model, c, g = self.model, self.config, self.guidance
+        eps = [self.episodes[b] for b in due]
+        sims = [self._sim_scene(ep) for ep in eps]
+
+        def windows() -> list[dict]:
+            return [
+                make_window(
+                    sim,
+                    ep.t,
+                    self.window_config,
+                    ep.segments,
+                    include=() if ep.adversary is None else (ep.adversary,),
+                )
+                for sim, ep in zip(sims, eps, strict=True)
+            ]
+
+        gens = [ep.generator for ep in eps]
+        kwargs = dict(
+            sampler=c.sampler, steps=c.sampling_steps, eta=c.eta, map_guidance=c.map_guidance
+        )
+        items = windows()
+        if g.enabled and c.selection_source == "model":
+            # Re-select on the world model's own unguided prediction of this window.
+            pred = model.sample(_collate(items), 1, gens, **kwargs)
+            for i, (ep, item) in enumerate(zip(eps, items, strict=True)):
+                ok = (item["rows"] >= 0) & pred.valid[i].numpy()
+                traj = pred.trajectory[i, 0].numpy()[ok]  # [A, F, 4] window frame
+                xy, yaw = _to_world(traj[..., :2], traj[..., 2], item["origin"])
+                ep.selection = self._select(
+                    ep,
+                    xy,
+                    np.ones(xy.shape[:2], bool),
+                    traj[..., 3],
+                    ep.t + 1,
+                    item["rows"][ok],
+                    yaw,
+                )
+            items = windows()  # the adversary is now forced into the window
+
+        batch = _collate(items)
+        adv_rows = [
+            _window_row(item["rows"], ep.adversary) for item, ep in zip(items, eps, strict=True)
+        ]
+        S = c.num_samples
+        targets = make_targets(
+            [ep.conflict for ep in eps],
+            adv_rows,
+            np.stack([item["origin"] for item in items]),
+            [ep.t for ep in eps],
+            [(ep.t - ep.start) / (ep.end - ep.start) for ep in eps],
+            g,
+        )
+        hook = make_guidance_hook(model, batch, targets, S, g) if g.enabled else None
+        pred = model.sample(batch, S, gens, guidance=hook, **kwargs)
+
+        best = np.zeros(len(eps), np.int64)
+        if S > 1:
+            best = self._choose(batch, pred, hook, adv_rows).numpy()
+
+        traj = pred.trajectory.numpy()
+        for i, (ep, item) in enumerate(zip(eps, items, strict=True)):
+            rows = item["rows"]
+            ok = (rows >= 0) & (rows != ep.factual.ego_index) & pred.valid[i].numpy()
+            chosen = traj[i, best[i], ok]  # [A, F, 4] window frame
+            xy, yaw = _to_world(chosen[..., :2], chosen[..., 2], item["origin"])
+            r = rows[ok]
+            ep.plan_positions[r] = xy
+            ep.plan_yaws[r] = yaw
+            ep.plan_speeds[r] = chosen[..., 3]
+            ep.plan_start[r] = ep.t + 1
+            ep.planned[r] = True
+            ep.replans += 1
+        for ep in eps:
+            ep.replan_seconds += (time.perf_counter() - started) / len(eps)
+
+    def _choose(self, batch, pred, hook, adv_rows: list[int]) -> torch.Tensor:
+        """``[B]`` best sample per scene: lowest guidance loss plus ``realism_weight`` times
+        the realism cost of everyone but the ego and the adversary."""
+        B, S, K = pred.trajectory.shape[:3]
+        cost = torch.zeros(B, S)
+        if hook is not None:
+            cost += sample_losses(self.model, hook, pred.normalized, self.guidance)
+        w = self.config.realism_weight
+        if w > 0:
+            exclude = torch.zeros(B, K, dtype=torch.bool)
+            exclude[:, 0] = True  # the ego's row: its plan is never executed
+            for b, row in enumerate(adv_rows):
+                if row >= 0:
+                    exclude[b, row] = True
+            rep = lambda x: x.repeat_interleave(S, 0)  # noqa: E731
+            traj = pred.trajectory.reshape(B * S, *pred.trajectory.shape[2:])
+            lanes = tuple(rep(batch[k]) for k in ("map", "map_valid", "map_widths"))
+            cost += w * plan_cost(
+                traj, rep(pred.valid), rep(batch["extents"]), lanes, rep(exclude)
+            ).reshape(B, S)
+        return cost.argmin(-1)
+
+    # ------------------------------------------------------------------ one step
+    def _advance(self, ep: _Episode, action: np.ndarray | None, state: np.ndarray | None) -> None:
+        t, t1 = ep.t, ep.t + 1
+        log = ep.factual
+        e = log.ego_index
+        present = log.valid[:, t1].copy()
+        present[e] = True
+        k = t1 - ep.plan_start
+        F = ep.plan_positions.shape[1]
+        on_plan = ep.planned & (k >= 0) & (k < F) & present
+        entered = present & ~ep.valid[:, t]
+        replay = present & ~on_plan & (~ep.planned | entered)
+        coast = present & ~on_plan & ~replay
+        i = np.flatnonzero(on_plan)
+        ep.positions[i, t1] = ep.plan_positions[i, k[i]]
+        ep.yaws[i, t1] = ep.plan_yaws[i, k[i]]
+        ep.speeds[i, t1] = ep.plan_speeds[i, k[i]]
+        i = np.flatnonzero(replay)
+        ep.positions[i, t1] = log.positions[i, t1]
+        ep.yaws[i, t1] = log.yaws[i, t1]
+        ep.speeds[i, t1] = log.speeds[i, t1]
+        i = np.flatnonzero(coast)
+        heading = np.stack([np.cos(ep.yaws[i, t]), np.sin(ep.yaws[i, t])], -1)
+        ep.positions[i, t1] = ep.positions[i, t] + log.dt * ep.speeds[i, t, None] * heading
+        ep.yaws[i, t1] = ep.yaws[i, t]
+        ep.speeds[i, t1] = ep.speeds[i, t]
+        ep.valid[:, t1] = present
+        ep.source[:, t1] = np.select([on_plan, replay, coast], [1, 2, 3], 0)
+        ep.source[e, t1] = 4
+
+        # The ego: the policy's action through highway-env's bicycle, or a written state.
+        v = ep.ego
+        if state is not None:
+            v.position = np.array(state[:2], dtype=np.float64)
+            v.heading, v.speed = float(state[2]), float(state[3])
+        else:
+            v.act({"acceleration": float(action[0]), "steering": float(action[1])})
+            v.step(log.dt)
+        ep.positions[e, t1] = v.position
+        ep.yaws[e, t1] = v.heading
+        ep.speeds[e, t1] = v.speed
+        ep.t = t1
+
+    # ------------------------------------------------------------------ per-step info
+    def _info(self, ep: _Episode, replanned: bool) -> dict:
+        """Step info (plain Python values; see the module docstring)."""
+        t, log = ep.t, ep.factual
+        e = log.ego_index
+        pos, yaw, ok = ep.positions[:, t], ep.yaws[:, t], ep.valid[:, t].copy()
+        ok[e] = False
+        ext = log.extents
+        hits = geometry.boxes_overlap(pos[e], yaw[e], ext[e], pos, yaw, ext) & ok
+        hit_rows = np.flatnonzero(hits)
+        vel = ep.speeds[:, t, None] * np.stack([np.cos(yaw), np.sin(yaw)], -1)
+        ttc = geometry.box_time_to_collision(
+            pos[e], vel[e], yaw[e], ext[e], pos, vel, yaw, ext, horizon=TTC_HORIZON
+        )
+        ttc = np.where(ok, ttc, np.inf)
+        acc = (ep.speeds[e, t] - ep.speeds[e, t - 1]) / log.dt if t > ep.start else 0.0
+        conflict, adv = ep.conflict, ep.adversary
+        adv_dist = float(np.linalg.norm(pos[adv] - pos[e])) if adv is not None and ok[adv] else None
+        return {
+            "step": t - ep.start,
+            "time": (t - ep.start) * log.dt,
+            "collision": bool(hits.any()),
+            "collided_with": str(log.agent_ids[hit_rows[0]]) if hit_rows.size else None,
+            "hard_braking": bool(acc < HARD_BRAKE),
+            "ego_acceleration": float(acc),
+            "ego_speed": float(ep.speeds[e, t]),
+            "off_road": not bool(geometry.points_in_area(log.road.drivable_area, pos[e])),
+            "min_ttc": float(ttc.min()) if ttc.size else math.inf,
+            "adversary": None if adv is None else str(log.agent_ids[adv]),
+            "conflict_type": None if conflict is None else conflict.subtype,
+            "danger_score": None if conflict is None else float(conflict.score),
+            "tier": None if conflict is None else conflict.tier,
+            "conflict_point": None
+            if conflict is None
+            else [float(x) for x in conflict.conflict_point],
+            "arrival_steps": None
+            if conflict is None
+            else [int(conflict.ego_step) - ep.start, int(conflict.adversary_step) - ep.start],
+            "adversary_distance": adv_dist,
+            "fallback": ep.selection.fallback,
+            "replanned": replanned,
+        }
+
+    # ------------------------------------------------------------------ results
+    def scene(self, b: int) -> Scene:
+        """Episode ``b`` as a :class:`Scene`: the log's history, then the simulated steps so
+        far (the rollout ends at the current step)."""
+        ep = self.episodes[b]
+        n = ep.t + 1
+        meta = dict(ep.factual.metadata)
+        meta["closed_loop"] = {
+            "adversary": None if ep.adversary is None else str(ep.factual.agent_ids[ep.adversary]),
+            "selector": self.config.selector,
+            "guidance": self.config.guidance,
+            "fallback": ep.selection.fallback,
+            "replans": ep.replans,
+        }
+        return ep.factual.replace(
+            positions=ep.positions[:, :n],
+            yaws=ep.yaws[:, :n],
+            speeds=ep.speeds[:, :n],
+            valid=ep.valid[:, :n],
+            metadata=meta,
+        )
+
+    def selection(self, b: int) -> Selection:
+        """The adversary selection of episode ``b`` (the latest one with source ``model``)."""
+        return self.episodes[b].selection
+
+    def motion_source(self, b: int) -> np.ndarray:
+        """``[N, T]`` int8: how each agent moved into each step so far (index into
+        :data:`MOTION_SOURCES`)."""
+        ep = self.episodes[b]
+        return ep.source[:, : ep.t + 1].copy()
+
+    def plan(self, b: int, row: int) -> np.ndarray | None:
+        """``[F, 2]`` m: the current plan of agent ``row`` in episode ``b`` (None if none)."""
+        ep = self.episodes[b]
+        return ep.plan_positions[row].copy() if ep.planned[row] else None
+
+
+# ---------------------------------------------------------------------- helpers
+def _check_rows(
+    x: np.ndarray | None, B: int, width: int, name: str, allow_nan_rows: bool = False
+) -> np.ndarray | None:
+    if x is None:
+        return None
+    x = np.asarray(x, dtype=np.float64)
+    if x.shape != (B, width):
+        raise ValueError(f"{name} must have shape ({B}, {width}), got {x.shape}")
+    bad = ~np.isfinite(x)
+    if allow_nan_rows:
+        bad &= ~np.isnan(x).all(-1, keepdims=True)
+    if bad.any():
+        raise ValueError(f"{name} contains NaN or inf: {x.tolist()}")
+    return x
+
+
+def _collate(items: list[dict]) -> dict[str, torch.Tensor]:
+    keys = ("history", "history_valid", "extents", "agent_valid", "map", "map_valid", "map_widths")
+    return {k: torch.from_numpy(np.stack([item[k] for item in items])) for k in keys}
+
+
+def _window_row(rows: np.ndarray, agent: int | None) -> int:
+    if agent is None:
+        return -1
+    hit = np.flatnonzero(rows == agent)
+    return int(hit[0]) if hit.size else -1
+
+
+def _to_world(xy: np.ndarray, yaw: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Window frame -> world: rotate by the origin's yaw, translate by its position."""
+    c, s = np.cos(origin[2]), np.sin(origin[2])
+    x, y = xy[..., 0], xy[..., 1]
+    world = np.stack([c * x - s * y + origin[0], s * x + c * y + origin[1]], -1)
+    return world, (yaw + origin[2] + np.pi) % (2 * np.pi) - np.pi

@@ -1,0 +1,223 @@
+"""Stress runs: an ego planner against world-model traffic with a guided adversary, scored
+as the paper's tables (``counterscene stress``).
+
+Episode i of a run uses the i-th scene of its source (generated scenarios: the i-th safe
+seed from ``seed``, as ``counterscene generate`` picks them; ``scenarionet:DIR``: the i-th
+``.pkl`` file of DIR, sorted; a dataset directory: its i-th scene; sources are cycled when
+there are more episodes than scenes) and seed ``seed + i`` for its sampling noise. So every row of a comparison (guidance presets, selectors) sees
+the same scenes and the same noise, and an episode's result does not depend on the batch it
+ran in.
+
+The summary (:func:`summarize`) is the paper's table row: ADE, FDE, ORR, HBR, CR for the
+horizon groups 1-4 s, 5-7 s, 8-10 s and per second (CR at second h counts episodes with an ego
+collision at or before h), plus the whole-episode rates, ego-vs-adversary collisions, mean
+min TTC, fallbacks and timing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from counterscene_env import metrics
+from counterscene_env.planners import Planner, make_planner
+from counterscene_env.scene.core import Scene
+from counterscene_env.sim import ClosedLoop, SimConfig
+from counterscene_env.world_model.model import WorldModel
+
+GENERATED = ("highway", "merge", "intersection", "roundabout")
+SCENARIONET_PREFIX = "scenarionet:"
+
+
+@dataclass(frozen=True)
+class StressConfig:
+    """One stress run.
+
+    Attributes:
+        scenario: ``highway``, ``merge``, ``intersection``, ``roundabout``,
+            ``scenarionet:DIR``, or a dataset directory (``counterscene generate --out``).
+        episodes: number of episodes.
+        seed: seed of episode 0 (episode i: ``seed + i``).
+        planner: ego planner name (``idm``, ``constant_velocity``, ``log``).
+        sim: closed-loop settings (selector, guidance, samples, ...).
+        batch: episodes advanced together (one world-model call per replan).
+    """
+
+    scenario: str
+    episodes: int = 50
+    seed: int = 0
+    planner: str = "idm"
+    sim: SimConfig = dataclasses.field(default_factory=SimConfig)
+    batch: int = 4
+
+    def __post_init__(self) -> None:
+        if self.episodes < 1:
+            raise ValueError(f"episodes must be >= 1, got {self.episodes}")
+        if self.batch < 1:
+            raise ValueError(f"batch must be >= 1, got {self.batch}")
+        path = self.scenario.removeprefix(SCENARIONET_PREFIX)
+        if self.scenario not in GENERATED and not Path(path).exists():
+            raise ValueError(
+                f"unknown scenario {self.scenario!r}: not one of {list(GENERATED)}, and no "
+                f"such path (use '{SCENARIONET_PREFIX}DIR' or a dataset directory)"
+            )
+        make_planner(self.planner)  # raises on an unknown name
+
+    def to_dict(self) -> dict:
+        out = dataclasses.asdict(self)
+        out["sim"] = dataclasses.asdict(self.sim)
+        return out
+
+
+def scenes_for(scenario: str, episodes: int, seed: int) -> Iterator[Scene]:
+    """The scene of each episode (module docstring).
+
+    ``scenario`` is a generated road (the first ``episodes`` safe seeds from ``seed``, exactly
+    the scenes ``counterscene generate --scenario S --scenes N --seed S0`` writes),
+    ``scenarionet:DIR``, or a dataset directory or shard file (its scenes in order). Sources
+    with fewer scenes than episodes are cycled.
+    """
+    if scenario in GENERATED:
+        from counterscene_env.scene.highway import generate
+
+        next_seed = seed
+        for _ in range(episodes):
+            scene = generate(scenario, next_seed)
+            next_seed = scene.metadata["seed"] + 1
+            yield scene
+        return
+    from counterscene_env.scene.datagen import iter_scenes
+
+    path = scenario.removeprefix(SCENARIONET_PREFIX)
+    cache: list[Scene] = []
+    for scene, _ in iter_scenes(path):
+        if len(cache) == episodes:
+            return
+        cache.append(scene)
+        yield scene
+    if not cache:
+        raise FileNotFoundError(f"{path}: no scenes")
+    for i in range(len(cache), episodes):
+        yield cache[i % len(cache)]
+
+
+def run_episodes(
+    model: WorldModel,
+    config: StressConfig,
+    planner_factory: Callable[[], Planner] | None = None,
+    progress: bool = True,
+) -> list[dict]:
+    """Run every episode; one record per episode (:func:`metrics.evaluate_scene` plus the
+    selection, the episode's seed and timing)."""
+    from tqdm.auto import tqdm
+
+    factory = planner_factory or (lambda: make_planner(config.planner))
+    loop = ClosedLoop(model, config.sim)
+    scenes = scenes_for(config.scenario, config.episodes, config.seed)
+    records: list[dict] = []
+    bar = tqdm(total=config.episodes, desc="stress", unit="ep", disable=not progress)
+    index = 0
+    while index < config.episodes:
+        chunk = []
+        for scene in scenes:
+            chunk.append(scene)
+            if len(chunk) == config.batch:
+                break
+        seeds = [config.seed + index + k for k in range(len(chunk))]
+        records += run_batch(loop, chunk, seeds, [factory() for _ in chunk])
+        index += len(chunk)
+        bar.update(len(chunk))
+        bar.set_postfix(cr=f"{np.mean([r['cr'] for r in records]):.2f}")
+    bar.close()
+    return records
+
+
+def run_batch(
+    loop: ClosedLoop, scenes: Sequence[Scene], seeds: Sequence[int], planners: Sequence[Planner]
+) -> list[dict]:
+    """Run B episodes together to their end; one record each."""
+    start = time.perf_counter()
+    loop.reset(scenes, seeds)
+    for planner, scene, seed in zip(planners, scenes, seeds, strict=True):
+        planner.reset(scene, seed)
+    B = len(scenes)
+    while not loop.done.all():
+        actions = np.zeros((B, 2))
+        states = np.full((B, 4), np.nan)
+        for b, planner in enumerate(planners):
+            if loop.episodes[b].done:
+                continue
+            state = loop.state(b)
+            if planner.replays_log:
+                states[b] = planner.next_state(state)
+            else:
+                actions[b] = planner.act(state)
+        loop.step(actions, states)
+    wall = time.perf_counter() - start
+
+    records = []
+    for b, scene in enumerate(scenes):
+        ep = loop.episodes[b]
+        sim = loop.scene(b)
+        factual = scene.time_slice(0, sim.num_steps)
+        rec = metrics.evaluate_scene(sim, factual, adversary=ep.adversary)
+        conflict = ep.conflict
+        rec.update(
+            seed=int(seeds[b]),
+            adversary_type=None if conflict is None else conflict.subtype,
+            adversary_tier=None if conflict is None else conflict.tier,
+            danger_score=None if conflict is None else float(conflict.score),
+            fallback=ep.selection.fallback,
+            replans=ep.replans,
+            replan_seconds=ep.replan_seconds,
+            seconds=wall / B,
+        )
+        records.append(rec)
+    return records
+
+
+def summarize(records: Sequence[dict], config: StressConfig) -> dict:
+    """The paper's table row of a run (module docstring), JSON-ready."""
+    agg = metrics.aggregate(records)
+    ttc = np.array([r["min_ttc"] for r in records], float)
+    finite = ttc[np.isfinite(ttc)]
+    overall = agg["overall"]
+    replans = sum(r["replans"] for r in records)
+    seconds = sum(r["seconds"] for r in records)
+    replan_seconds = sum(r["replan_seconds"] for r in records)
+    return {
+        "horizons": agg["groups"],
+        "per_second": agg["per_second"],
+        "episodes": len(records),
+        "cr": overall["cr"],
+        "cr_ego_adversary": overall["cr_ego_adversary"],
+        "cr_non_ego": overall["cr_non_ego"],
+        "hbr_ego": overall["hbr_ego"],
+        "orr": overall["orr"],
+        "mean_min_ttc": float(finite.mean()) if finite.size else math.inf,
+        "episodes_without_ttc_conflict": int((~np.isfinite(ttc)).sum()),
+        "mean_min_clearance_adversary": overall["min_clearance_adversary"],
+        "fallbacks": sum(r["fallback"] is not None for r in records),
+        "seconds_per_episode": seconds / len(records),
+        "seconds_per_replan": replan_seconds / replans if replans else math.nan,
+        "overall": overall,
+        "config": config.to_dict(),
+    }
+
+
+def write_outputs(directory: str | os.PathLike, summary: dict, records: Sequence[dict]) -> None:
+    """``DIR/metrics.json`` (the summary) and ``DIR/episodes.jsonl`` (one line per episode)."""
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps(metrics.json_safe(summary), indent=2) + "\n")
+    with open(out / "episodes.jsonl", "w") as f:
+        for rec in records:
+            f.write(json.dumps(metrics.json_safe(rec)) + "\n")
