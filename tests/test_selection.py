@@ -543,3 +543,15 @@ def test_bad_input_is_a_clear_value_error():
         select_adversary("causal", positions, valid, 4)
     with pytest.raises(ValueError, match="agent 0 is the ego"):
         encounter(positions, valid, 0, 0)
+
+
+def test_a_pair_closest_right_now_is_rejected_under_strict():
+    # A car beside the ego at index 0 that turns away: the closest encounter is "now" for
+    # both, so no conflict lies ahead; the paper's rule still tiers it (intersection, gap 0).
+    diverging = np.stack([STEPS * 0.7, 3.0 + STEPS * 0.7], -1)
+    positions, valid = stack(ego_track(), diverging)
+    c = encounter(positions, valid, 0, 1, dt=DT)
+    assert (c.ego_step, c.adversary_step, c.tier) == (0, 0, 1)
+    assert select_adversary("causal", positions, valid, 0, dt=DT, strict=False).conflict.agent == 1
+    strict = select_adversary("causal", positions, valid, 0, dt=DT)
+    assert strict.conflict is None and "strict" in strict.fallback

@@ -38,7 +38,9 @@ What the paper lacks and we add (DESIGN 3.4): optional *strict* gates (on by def
 :func:`select_adversary`, off in the paper preset) that withdraw the tier of a conflict that the
 guidance cannot realistically turn into a near miss: ``d_min >= 15 m``, arrival gap >= 1.5 s, an
 encounter on the last jointly valid step (truncated by the horizon, so not a real closest
-approach), or a candidate that does not move (mean speed <= 1 m/s).
+approach) or, for both, on the first (the two are closest *now* and drift apart: no conflict
+lies ahead for the guidance to sharpen; side-by-side cars at a junction are the common case),
+or a candidate that does not move (mean speed <= 1 m/s).
 
 Baselines (paper Table 3), behind the same interface, differ only in the choice: ``random``
 (uniform), ``distance`` (SafeSim: nearest at the first jointly valid step) and ``ttc`` (CCDiff:
@@ -384,14 +386,16 @@ def _mean_speed(tracks: _Tracks, agent: int) -> float:
 
 
 def _passes_strict(tracks: _Tracks, conflict: Conflict, start_step: int) -> bool:
-    """The strict gates (module constants): near, co-arriving, not truncated, moving."""
+    """The strict gates (module constants): near, co-arriving, ahead and not truncated,
+    moving."""
     joint = np.flatnonzero(tracks.valid[tracks.ego] & tracks.valid[conflict.agent])
-    last = start_step + int(joint[-1])
+    first, last = start_step + int(joint[0]), start_step + int(joint[-1])
     return (
         conflict.min_distance < STRICT_MAX_DISTANCE
         and conflict.arrival_gap < STRICT_MAX_GAP
         and conflict.ego_step != last
         and conflict.adversary_step != last
+        and not conflict.ego_step == conflict.adversary_step == first
         and _mean_speed(tracks, conflict.agent) > STRICT_MIN_SPEED
     )
 

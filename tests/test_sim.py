@@ -1,0 +1,173 @@
+"""The closed loop: determinism, batching, validity, ego control, selection and bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import make_scene
+
+from counterscene_env.scene.dataset import make_window
+from counterscene_env.sim import ClosedLoop, SimConfig
+from counterscene_env.world_model.checkpoint import load_model
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+SHORT = SimConfig(duration=1.5, num_samples=2)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model()
+
+
+def run(model, scenes, seeds, config=SHORT, actions=None):
+    loop = ClosedLoop(model, config)
+    loop.reset(scenes, seeds)
+    a = np.zeros((len(scenes), 2)) if actions is None else actions
+    infos = []
+    while not loop.done.all():
+        infos.append(loop.step(a))
+    return loop, infos
+
+
+def test_same_seed_and_actions_give_the_same_episode(model, generated):
+    scene = generated["intersection"]
+    a, _ = run(model, [scene], [7])
+    b, _ = run(model, [scene], [7])
+    c, _ = run(model, [scene], [8])
+    sa, sb, sc = a.scene(0), b.scene(0), c.scene(0)
+    assert np.array_equal(sa.positions, sb.positions) and np.array_equal(sa.yaws, sb.yaws)
+    assert not np.allclose(sa.positions, sc.positions)  # the seed does matter
+
+
+def test_an_episode_does_not_depend_on_its_batch(model, generated):
+    alone, _ = run(model, [generated["merge"]], [3])
+    batched, _ = run(model, [generated["merge"], generated["roundabout"]], [3, 4])
+    np.testing.assert_allclose(alone.scene(0).positions, batched.scene(0).positions, atol=1e-3)
+
+
+def test_history_is_the_log_and_validity_follows_it(model, generated):
+    scene = generated["intersection"]
+    loop, _ = run(model, [scene], [0])
+    sim = loop.scene(0)
+    c = scene.current_index
+    assert sim.num_steps == c + 1 + round(SHORT.duration / scene.dt)
+    assert np.array_equal(sim.positions[:, : c + 1], scene.positions[:, : c + 1])
+    assert np.array_equal(sim.valid, scene.valid[:, : sim.num_steps])
+    assert np.isfinite(sim.positions[sim.valid]).all()
+    # Traffic moved by the model: not a copy of the log.
+    others = np.arange(scene.num_agents) != scene.ego_index
+    moved = sim.valid[others, c + 1 :] & scene.valid[others, c + 1 : sim.num_steps]
+    diff = sim.positions[others, c + 1 :] - scene.positions[others, c + 1 : sim.num_steps]
+    assert np.abs(diff[moved]).max() > 0.01
+
+
+def test_ego_follows_its_actions_through_the_bicycle_model(model, generated):
+    scene = generated["highway"]
+    e, c = scene.ego_index, scene.current_index
+    loop, infos = run(model, [scene], [0], actions=np.array([[-4.0, 0.0]]))
+    sim = loop.scene(0)
+    v0 = scene.speeds[e, c]
+    assert sim.speeds[e, -1] == pytest.approx(v0 - 4.0 * SHORT.duration, abs=1e-6)
+    assert all(i[0]["hard_braking"] for i in infos)  # -4 m/s^2 < -3 m/s^2
+    assert infos[-1][0]["ego_acceleration"] == pytest.approx(-4.0)
+
+
+def test_written_ego_states_replay_the_log(model, generated):
+    scene = generated["roundabout"]
+    e = scene.ego_index
+    loop = ClosedLoop(model, SHORT)
+    loop.reset([scene], [0])
+    while not loop.done.all():
+        t1 = loop.state(0).t + 1
+        state = [*scene.positions[e, t1], scene.yaws[e, t1], scene.speeds[e, t1]]
+        loop.step(ego_states=np.array([state]))
+    sim = loop.scene(0)
+    assert np.allclose(sim.positions[e], scene.positions[e, : sim.num_steps])
+
+
+def test_step_info_is_plain_and_complete(model, generated):
+    _, infos = run(model, [generated["intersection"]], [0])
+    info = infos[0][0]
+    for key in (
+        "collision",
+        "collided_with",
+        "hard_braking",
+        "ego_acceleration",
+        "adversary",
+        "conflict_type",
+        "danger_score",
+        "conflict_point",
+        "arrival_steps",
+        "adversary_distance",
+        "min_ttc",
+        "off_road",
+        "fallback",
+    ):
+        assert key in info
+    assert isinstance(info["collision"], bool) and isinstance(info["ego_acceleration"], float)
+    json.dumps(info)  # plain Python values only
+
+
+def crossing_scene(T=100):
+    """Ego east along y = 0 at 10 m/s; row 1 crosses north on x = 30 and yields: it reaches
+    the crossing at index 38, 0.8 s after the ego (index 30). Row 2 parks far away."""
+    t = np.arange(T) * 0.1
+    ego = np.stack([-0.0 + 10 * t, np.zeros(T)], -1)
+    cross_y = np.where(t < 3.8, -30 + 30 * np.minimum(t, 3.8) / 3.8, 10 * (t - 3.8))
+    cross = np.stack([np.full(T, 30.0), cross_y], -1)
+    parked = np.tile([200.0, 8.0], (T, 1))
+    pos = np.stack([ego, cross, parked])
+    yaws = np.array([np.zeros(T), np.full(T, np.pi / 2), np.zeros(T)])
+    speeds = np.array([np.full(T, 10.0), np.gradient(cross_y, 0.1), np.zeros(T)])
+    return make_scene(pos, yaws=yaws, speeds=speeds, current_index=0)
+
+
+def test_the_planted_critical_agent_is_selected_on_the_log(model):
+    loop = ClosedLoop(model, SimConfig(duration=9.0))
+    infos = loop.reset([crossing_scene()], [0])
+    sel = loop.selection(0)
+    assert sel.conflict.agent == 1
+    assert (sel.conflict.type, sel.conflict.tier) == ("intersection", 1)
+    assert (sel.conflict.ego_step, sel.conflict.adversary_step) == (30, 38)
+    assert infos[0]["adversary"] == "a1" and infos[0]["arrival_steps"] == [30, 38]
+    assert infos[0]["fallback"] is None
+
+
+def test_no_candidate_falls_back_and_says_why(model):
+    T = 40
+    pos = np.stack([np.stack([np.arange(T) * 1.0, np.zeros(T)], -1)])
+    scene = make_scene(pos, speeds=np.full((1, T), 10.0), current_index=0)
+    _, infos = run(model, [scene], [0], SimConfig(duration=1.0))
+    assert infos[-1][0]["adversary"] is None
+    assert "candidate" in infos[-1][0]["fallback"]
+    off, _ = run(model, [crossing_scene()], [0], SimConfig(duration=0.5, guidance="none"))
+    assert off.selection(0).conflict is None and "off" in off.selection(0).fallback
+
+
+def test_the_adversary_is_kept_in_the_model_window(model):
+    scene = crossing_scene()
+    window = make_window(scene, 0, model.window_config(), include=(2,))  # 200 m away
+    assert list(window["rows"][:3]) == [0, 2, 1]
+    assert list(make_window(scene, 0, model.window_config())["rows"][:3]) == [0, 1, -1]
+
+
+def test_bad_input_is_refused_with_a_clear_error(model, generated):
+    loop = ClosedLoop(model, SHORT)
+    with pytest.raises(RuntimeError, match="reset"):
+        loop.step(np.zeros((1, 2)))
+    loop.reset([generated["merge"]], [0])
+    with pytest.raises(ValueError, match=r"actions must have shape \(1, 2\)"):
+        loop.step(np.zeros(2))
+    with pytest.raises(ValueError, match="NaN"):
+        loop.step(np.array([[np.nan, 0.0]]))
+    with pytest.raises(ValueError, match="actions or ego_states"):
+        loop.step()
+    with pytest.raises(ValueError, match="unknown selector"):
+        SimConfig(selector="closest")
+    with pytest.raises(ValueError, match="unknown guidance preset"):
+        SimConfig(guidance="max")
+    with pytest.raises(ValueError, match="unknown simulation keys"):
+        SimConfig.from_mapping({"replan": 3})

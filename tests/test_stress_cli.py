@@ -1,0 +1,76 @@
+"""`counterscene stress`: the paper's table row as JSON, per-episode records, errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from counterscene_env.cli import main
+from counterscene_env.scene.shards import save_scenes
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+@pytest.fixture(scope="module")
+def shard(generated, tmp_path_factory):
+    path = tmp_path_factory.mktemp("stress") / "scenes.npz"
+    save_scenes([generated["merge"], generated["intersection"]], path)
+    return str(path)
+
+
+def stress(capsys, *args):
+    code = main(["stress", "--duration", "2", "--samples", "2", "--quiet", *args])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_stress_json_summary_and_episode_records(shard, tmp_path, capsys):
+    out_dir = tmp_path / "run"
+    code, out, _ = stress(
+        capsys, "--scenario", shard, "--episodes", "3", "--json", "--out", str(out_dir)
+    )
+    assert code == 0
+    summary = json.loads(out)
+    assert summary["episodes"] == 3  # two scenes, cycled
+    assert set(summary["horizons"]) == {"1-4s", "5-7s", "8-10s"}
+    for row in summary["horizons"].values():
+        assert set(row) == {"ADE", "FDE", "ORR", "HBR", "CR"}
+    assert list(summary["per_second"]) == [str(s) for s in range(1, 11)]
+    crs = [summary["per_second"][str(s)]["CR"] for s in range(1, 11)]
+    assert all(0.0 <= c <= 1.0 for c in crs)
+    assert crs == sorted(crs)  # CR at h counts collisions at or before h
+    for key in ("cr", "cr_ego_adversary", "mean_min_ttc", "fallbacks", "config"):
+        assert key in summary
+    assert summary["config"]["sim"]["guidance"] == "full"
+    assert json.loads((out_dir / "metrics.json").read_text()) == summary
+    lines = (out_dir / "episodes.jsonl").read_text().splitlines()
+    assert len(lines) == 3
+    first = json.loads(lines[0])
+    assert first["scenario_id"] == "merge/seed=1" and first["rollout_s"] == pytest.approx(2.0)
+    # Episodes 0 and 2 run the same scene with different seeds (noise).
+    assert json.loads(lines[2])["scenario_id"] == first["scenario_id"]
+    assert json.loads(lines[2])["seed"] == first["seed"] + 2
+
+
+def test_stress_text_table(shard, capsys):
+    code, out, _ = stress(
+        capsys, "--scenario", shard, "--episodes", "1", "--guidance", "none", "--planner", "log"
+    )
+    assert code == 0
+    assert "1-4s" in out and "episode CR" in out and "s per replan" in out
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--scenario", "parking_lot"], "unknown scenario 'parking_lot'"),
+        (["--scenario", "merge", "--planner", "mpc"], "unknown planner 'mpc'"),
+        (["--scenario", "merge", "--episodes", "0"], "episodes must be >= 1"),
+        (["--scenario", "merge", "--model", "/no/such/model"], "/no/such/model"),
+    ],
+)
+def test_stress_bad_input(args, message, capsys):
+    code, _, err = stress(capsys, *args)
+    assert code == 1
+    assert message in err
