@@ -15,7 +15,7 @@ state, ``next_state(state) -> [4]`` (x m, y m, yaw rad, speed m/s), written as i
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from highway_env.road.road import Road
@@ -23,7 +23,9 @@ from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from counterscene_env.scene.core import Scene
-from counterscene_env.sim import WorldState
+
+if TYPE_CHECKING:  # the closed loop also drives background traffic with IDMPlanner
+    from counterscene_env.sim import WorldState
 
 
 class Planner(Protocol):
@@ -70,11 +72,11 @@ class LogReplayPlanner:
 
 
 class IDMPlanner:
-    """highway-env's IDM lane follower driving the ego (module docstring).
+    """highway-env's IDM lane follower driving the ego (module docstring), or any agent.
 
     Args:
-        target_speed: desired speed [m/s]; default: the fastest the ego drove in its 3 s of
-            history (at least ``min_target_speed``).
+        target_speed: desired speed [m/s]; default: the fastest the agent drove in the 3 s
+            before it started (at least ``min_target_speed``).
         min_target_speed: floor of the default target speed [m/s].
     """
 
@@ -85,9 +87,15 @@ class IDMPlanner:
         self.target_speed = target_speed
         self.min_target_speed = min_target_speed
 
-    def reset(self, scene: Scene, seed: int) -> None:
+    def reset(
+        self, scene: Scene, seed: int, agent: int | None = None, t: int | None = None
+    ) -> None:
+        """Start driving ``agent`` (default: the ego) from step ``t`` (default: "now") of
+        ``scene``, along the lanes of its logged route."""
         self.scene = scene
         self.dt = scene.dt
+        self.agent = e = scene.ego_index if agent is None else int(agent)
+        t = scene.current_index if t is None else int(t)
         net = scene.road.network
         # Connected lanes: see the car ahead across a lane-segment boundary (junction entries).
         self.road = Road(
@@ -96,11 +104,11 @@ class IDMPlanner:
             np_random=np.random.default_rng(seed),
             neighbour_vehicles_connected_lanes=True,
         )
-        e, t = scene.ego_index, scene.current_index
-        history = scene.speeds[e, : t + 1][scene.valid[e, : t + 1]]
+        lo = max(0, t - 30)
+        history = scene.speeds[e, lo : t + 1][scene.valid[e, lo : t + 1]]
         target = self.target_speed
         if target is None:
-            target = max(float(history.max()), self.min_target_speed)
+            target = max(float(history.max(initial=0.0)), self.min_target_speed)
         self.vehicle = IDMVehicle(
             self.road,
             scene.positions[e, t].copy(),
@@ -110,7 +118,7 @@ class IDMPlanner:
             enable_lane_change=False,
         )
         self.vehicle.LENGTH, self.vehicle.WIDTH = (float(x) for x in scene.extents[e])
-        # Follow the logged ego's route: plan to the end node of the lane it ends on.
+        # Follow the logged route: plan to the end node of the lane the agent's log ends on.
         last = np.flatnonzero(scene.valid[e])[-1]
         goal = net.get_closest_lane_index(scene.positions[e, last], scene.yaws[e, last])
         self.vehicle.plan_route_to(goal[1])
@@ -122,7 +130,7 @@ class IDMPlanner:
         self.road.vehicles = [self.vehicle]
 
     def act(self, state: WorldState) -> np.ndarray:
-        v, e = self.vehicle, state.ego_index
+        v, e = self.vehicle, self.agent
         v.position = np.array(state.positions[e], dtype=np.float64)
         v.heading, v.speed = float(state.yaws[e]), float(state.speeds[e])
         v.on_state_update()  # its lane, as highway-env would after a step
@@ -138,6 +146,17 @@ class IDMPlanner:
         # IDM may ask a stopped car to "brake" further; a lane follower does not reverse.
         acc = max(acc, -v.speed / self.dt)
         return np.array([acc, steer])
+
+    def drive(self, state: WorldState) -> np.ndarray:
+        """Act and advance the agent one step through highway-env's bicycle model; returns its
+        next state (x m, y m, yaw rad, speed m/s). The closed loop drives background traffic
+        (agents out of the world model's view) this way."""
+        acc, steer = self.act(state)
+        v = self.vehicle
+        # Vehicle.act stores the (clipped) action; IDMVehicle.act would recompute its own.
+        Vehicle.act(v, {"acceleration": acc, "steering": steer})
+        v.step(self.dt)
+        return np.array([*v.position, v.heading, v.speed])
 
 
 PLANNERS = {

@@ -52,6 +52,7 @@ from counterscene_env.adversary.guidance import (
     sample_losses,
 )
 from counterscene_env.adversary.selection import METHODS, Conflict, Selection, select_adversary
+from counterscene_env.planners import IDMPlanner
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.dataset import lane_segments, make_window
 from counterscene_env.world_model.model import WorldModel
@@ -61,8 +62,8 @@ from counterscene_env.world_model.realism import plan_cost
 HARD_BRAKE = -3.0
 #: How an agent moved into a step (``ClosedLoop.motion_source``): absent or history, its
 #: world-model plan, its log (never planned, or just entered), constant velocity (plan ran
-#: out), the ego's policy.
-MOTION_SOURCES = ("none", "plan", "log", "coast", "ego")
+#: out), the ego's policy, highway-env's IDM (left the model's view).
+MOTION_SOURCES = ("none", "plan", "log", "coast", "ego", "idm")
 #: Horizon of the per-step TTC, s.
 TTC_HORIZON = 5.0
 
@@ -89,6 +90,9 @@ class SimConfig:
             model's default).
         realism_weight: weight of the realism cost (agents overlapping or off their lanes,
             ``world_model/realism.py``) in the choice among samples; 0: guidance loss only.
+        cover_radius: an agent is planned from a model window only if it is within this many
+            metres of the window's centre [m]; farther agents get windows of their own.
+        max_windows: model windows per episode and replan (the ego's plus extra ones).
     """
 
     duration: float = 10.0
@@ -103,6 +107,8 @@ class SimConfig:
     eta: float | None = None
     map_guidance: float | None = None
     realism_weight: float = 1.0
+    cover_radius: float = 25.0
+    max_windows: int = 1
 
     def __post_init__(self) -> None:
         if not self.duration > 0:
@@ -181,6 +187,7 @@ class _Episode:
     replans: int = 0
     replan_seconds: float = 0.0  # this episode's share of the batched replan calls
     records: list[dict] = field(default_factory=list)
+    background: dict = field(default_factory=dict)  # row -> IDMPlanner (out of the window)
 
     @property
     def conflict(self) -> Conflict | None:
@@ -280,7 +287,10 @@ class ClosedLoop:
 
     def state(self, b: int) -> WorldState:
         """What episode ``b`` looks like at its current step."""
-        ep = self.episodes[b]
+        return self._state(self.episodes[b])
+
+    @staticmethod
+    def _state(ep: _Episode) -> WorldState:
         t = ep.t
         return WorldState(
             t=t,
@@ -384,103 +394,165 @@ class ClosedLoop:
             positions=ep.positions, yaws=ep.yaws, speeds=ep.speeds, valid=valid
         )
 
+    def _windows(self, ep: _Episode, sim: Scene) -> list[dict]:
+        """The model windows of one episode at its current step.
+
+        The first is centred on the ego (with the adversary forced in). Agents farther than
+        ``cover_radius`` from every window centre get windows of their own, centred on the
+        uncovered agent nearest the ego, up to ``max_windows``: the model sees the lanes and
+        neighbours around each agent it plans, not only around the ego. Each window's
+        ``plan_rows`` are the agents whose plans it supplies.
+        """
+        c, t = self.config, ep.t
+        wc = self.window_config
+        include = () if ep.adversary is None else (ep.adversary,)
+        first = make_window(sim, t, wc, ep.segments, include=include)
+        e = sim.ego_index
+        pos = sim.positions[:, t]
+        movable = sim.valid[:, t] & (sim.agent_types == "vehicle")
+        movable[e] = False
+        first["plan_rows"] = [int(r) for r in first["rows"] if r >= 0 and r != e]
+        items = [first]
+        covered = np.zeros(sim.num_agents, bool)
+        covered[first["rows"][first["rows"] >= 0]] = True
+        near = np.linalg.norm(pos - pos[e], axis=-1) <= c.cover_radius
+        covered &= near
+        if ep.adversary is not None:
+            covered[ep.adversary] = True  # guided in the ego's window, wherever it is
+        while len(items) < c.max_windows:
+            left = np.flatnonzero(movable & ~covered)
+            if not left.size:
+                break
+            centre = int(left[np.argmin(np.linalg.norm(pos[left] - pos[e], axis=-1))])
+            item = make_window(sim.replace(ego_index=centre), t, wc, ep.segments)
+            rows = item["rows"][item["rows"] >= 0]
+            mine = rows[
+                movable[rows]
+                & ~covered[rows]
+                & (np.linalg.norm(pos[rows] - pos[centre], axis=-1) <= c.cover_radius)
+            ]
+            item["plan_rows"] = [int(r) for r in mine]
+            covered[mine] = True
+            covered[centre] = True
+            items.append(item)
+        # Agents left uncovered keep the plan of the first window that holds them.
+        return items
+
     def _replan(self, due: list[int]) -> None:
         started = time.perf_counter()
         model, c, g = self.model, self.config, self.guidance
         eps = [self.episodes[b] for b in due]
         sims = [self._sim_scene(ep) for ep in eps]
-
-        def windows() -> list[dict]:
-            return [
-                make_window(
-                    sim,
-                    ep.t,
-                    self.window_config,
-                    ep.segments,
-                    include=() if ep.adversary is None else (ep.adversary,),
-                )
-                for sim, ep in zip(sims, eps, strict=True)
-            ]
-
-        gens = [ep.generator for ep in eps]
         kwargs = dict(
             sampler=c.sampler, steps=c.sampling_steps, eta=c.eta, map_guidance=c.map_guidance
         )
-        items = windows()
         if g.enabled and c.selection_source == "model":
-            # Re-select on the world model's own unguided prediction of this window.
-            pred = model.sample(_collate(items), 1, gens, **kwargs)
+            # Re-select on the world model's own unguided prediction of the ego's window.
+            items = [
+                make_window(sim, ep.t, self.window_config, ep.segments)
+                for sim, ep in zip(sims, eps, strict=True)
+            ]
+            pred = model.sample(_collate(items), 1, [ep.generator for ep in eps], **kwargs)
             for i, (ep, item) in enumerate(zip(eps, items, strict=True)):
                 ok = (item["rows"] >= 0) & pred.valid[i].numpy()
                 traj = pred.trajectory[i, 0].numpy()[ok]  # [A, F, 4] window frame
                 xy, yaw = _to_world(traj[..., :2], traj[..., 2], item["origin"])
-                ep.selection = self._select(
-                    ep,
-                    xy,
-                    np.ones(xy.shape[:2], bool),
-                    traj[..., 3],
-                    ep.t + 1,
-                    item["rows"][ok],
-                    yaw,
-                )
-            items = windows()  # the adversary is now forced into the window
+                valid = np.ones(xy.shape[:2], bool)
+                rows = item["rows"][ok]
+                ep.selection = self._select(ep, xy, valid, traj[..., 3], ep.t + 1, rows, yaw)
 
+        # Every window of every episode in one batched call; window 0 of each is the ego's.
+        owner, items = [], []
+        for i, (sim, ep) in enumerate(zip(sims, eps, strict=True)):
+            for item in self._windows(ep, sim):
+                owner.append(i)
+                items.append(item)
         batch = _collate(items)
+        first = [j == 0 or owner[j] != owner[j - 1] for j in range(len(items))]
         adv_rows = [
-            _window_row(item["rows"], ep.adversary) for item, ep in zip(items, eps, strict=True)
+            _window_row(item["rows"], eps[o].adversary) if head else -1
+            for item, o, head in zip(items, owner, first, strict=True)
         ]
         S = c.num_samples
         targets = make_targets(
-            [ep.conflict for ep in eps],
+            [eps[o].conflict for o in owner],
             adv_rows,
             np.stack([item["origin"] for item in items]),
-            [ep.t for ep in eps],
-            [(ep.t - ep.start) / (ep.end - ep.start) for ep in eps],
+            [eps[o].t for o in owner],
+            [(eps[o].t - eps[o].start) / (eps[o].end - eps[o].start) for o in owner],
             g,
         )
         hook = make_guidance_hook(model, batch, targets, S, g) if g.enabled else None
+        gens = [eps[o].generator for o in owner]
         pred = model.sample(batch, S, gens, guidance=hook, **kwargs)
 
-        best = np.zeros(len(eps), np.int64)
+        ego_rows = [
+            _window_row(item["rows"], eps[o].factual.ego_index)
+            for item, o in zip(items, owner, strict=True)
+        ]
+        best = np.zeros(len(items), np.int64)
         if S > 1:
-            best = self._choose(batch, pred, hook, adv_rows).numpy()
+            best = self._choose(batch, pred, hook, adv_rows, ego_rows).numpy()
 
         traj = pred.trajectory.numpy()
-        for i, (ep, item) in enumerate(zip(eps, items, strict=True)):
-            rows = item["rows"]
-            ok = (rows >= 0) & (rows != ep.factual.ego_index) & pred.valid[i].numpy()
-            chosen = traj[i, best[i], ok]  # [A, F, 4] window frame
+        for j, (o, item) in enumerate(zip(owner, items, strict=True)):
+            ep = eps[o]
+            lookup = {int(r): k for k, r in enumerate(item["rows"]) if r >= 0}
+            rows = np.array(
+                [r for r in item["plan_rows"] if pred.valid[j, lookup[r]]], dtype=np.int64
+            )
+            if not rows.size:
+                continue
+            cols = np.array([lookup[r] for r in rows])
+            chosen = traj[j, best[j], cols]  # [A, F, 4] window frame
             xy, yaw = _to_world(chosen[..., :2], chosen[..., 2], item["origin"])
-            r = rows[ok]
-            ep.plan_positions[r] = xy
-            ep.plan_yaws[r] = yaw
-            ep.plan_speeds[r] = chosen[..., 3]
-            ep.plan_start[r] = ep.t + 1
-            ep.planned[r] = True
-            ep.replans += 1
+            ep.plan_positions[rows] = xy
+            ep.plan_yaws[rows] = yaw
+            ep.plan_speeds[rows] = chosen[..., 3]
+            ep.plan_start[rows] = ep.t + 1
+            ep.planned[rows] = True
+            # Agents the model planned before but no longer sees (they left its window)
+            # continue as highway-env IDM lane followers rather than on a stale open-loop
+            # plan; an agent back in view is the model's again.
+        planned_now: dict[int, set[int]] = {}
+        for o, item in zip(owner, items, strict=True):
+            planned_now.setdefault(o, set()).update(item["plan_rows"])
+        for i, ep in enumerate(eps):
+            now = planned_now.get(i, set())
+            for r in list(ep.background):
+                if r in now:
+                    del ep.background[r]
+            for r in np.flatnonzero(ep.planned & ep.valid[:, ep.t]):
+                r = int(r)
+                if r not in now and r not in ep.background and r != ep.factual.ego_index:
+                    idm = IDMPlanner()
+                    idm.reset(ep.factual, int(ep.rng.integers(2**31)), agent=r, t=ep.t)
+                    ep.background[r] = idm
         for ep in eps:
+            ep.replans += 1
             ep.replan_seconds += (time.perf_counter() - started) / len(eps)
 
-    def _choose(self, batch, pred, hook, adv_rows: list[int]) -> torch.Tensor:
-        """``[B]`` best sample per scene: lowest guidance loss plus ``realism_weight`` times
-        the realism cost of everyone but the ego and the adversary."""
-        B, S, K = pred.trajectory.shape[:3]
-        cost = torch.zeros(B, S)
+    def _choose(self, batch, pred, hook, adv_rows: list[int], ego_rows: list[int]) -> torch.Tensor:
+        """``[W]`` best sample per window: lowest guidance loss plus ``realism_weight`` times
+        the realism cost of everyone but the ego (whose plan is never executed) and the
+        adversary (which the guidance steers)."""
+        W, S, K = pred.trajectory.shape[:3]
+        cost = torch.zeros(W, S)
         if hook is not None:
             cost += sample_losses(self.model, hook, pred.normalized, self.guidance)
         w = self.config.realism_weight
         if w > 0:
-            exclude = torch.zeros(B, K, dtype=torch.bool)
-            exclude[:, 0] = True  # the ego's row: its plan is never executed
-            for b, row in enumerate(adv_rows):
-                if row >= 0:
-                    exclude[b, row] = True
+            exclude = torch.zeros(W, K, dtype=torch.bool)
+            for j, (adv, ego) in enumerate(zip(adv_rows, ego_rows, strict=True)):
+                for row in (adv, ego):
+                    if row >= 0:
+                        exclude[j, row] = True
             rep = lambda x: x.repeat_interleave(S, 0)  # noqa: E731
-            traj = pred.trajectory.reshape(B * S, *pred.trajectory.shape[2:])
+            traj = pred.trajectory.reshape(W * S, *pred.trajectory.shape[2:])
             lanes = tuple(rep(batch[k]) for k in ("map", "map_valid", "map_widths"))
             cost += w * plan_cost(
                 traj, rep(pred.valid), rep(batch["extents"]), lanes, rep(exclude)
-            ).reshape(B, S)
+            ).reshape(W, S)
         return cost.argmin(-1)
 
     # ------------------------------------------------------------------ one step
@@ -492,10 +564,18 @@ class ClosedLoop:
         present[e] = True
         k = t1 - ep.plan_start
         F = ep.plan_positions.shape[1]
-        on_plan = ep.planned & (k >= 0) & (k < F) & present
         entered = present & ~ep.valid[:, t]
-        replay = present & ~on_plan & (~ep.planned | entered)
-        coast = present & ~on_plan & ~replay
+        idm = np.zeros_like(present)
+        idm[list(ep.background)] = True
+        idm &= present & ~entered
+        on_plan = ep.planned & (k >= 0) & (k < F) & present & ~idm
+        replay = present & ~on_plan & ~idm & (~ep.planned | entered)
+        coast = present & ~on_plan & ~replay & ~idm
+        if idm.any():
+            now = self._state(ep)  # everyone at step t, before anyone moves
+            for r in np.flatnonzero(idm):
+                x, y, yaw, speed = ep.background[int(r)].drive(now)
+                ep.positions[r, t1], ep.yaws[r, t1], ep.speeds[r, t1] = (x, y), yaw, speed
         i = np.flatnonzero(on_plan)
         ep.positions[i, t1] = ep.plan_positions[i, k[i]]
         ep.yaws[i, t1] = ep.plan_yaws[i, k[i]]
@@ -510,7 +590,7 @@ class ClosedLoop:
         ep.yaws[i, t1] = ep.yaws[i, t]
         ep.speeds[i, t1] = ep.speeds[i, t]
         ep.valid[:, t1] = present
-        ep.source[:, t1] = np.select([on_plan, replay, coast], [1, 2, 3], 0)
+        ep.source[:, t1] = np.select([on_plan, replay, coast, idm], [1, 2, 3, 5], 0)
         ep.source[e, t1] = 4
 
         # The ego: the policy's action through highway-env's bicycle, or a written state.

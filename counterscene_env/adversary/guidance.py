@@ -72,6 +72,8 @@ class GuidanceConfig:
     step_size: float = 0.3
     inner_steps: int = 1
     progress: str = "rollout"
+    clip_scale: float = 1.0
+    evaluate_on: str = "mean"
 
     def __post_init__(self) -> None:
         if self.progress not in ("rollout", "denoising"):
@@ -346,15 +348,17 @@ def make_guidance_hook(
     dt = model.config.dt
 
     def hook(mean: torch.Tensor, sigma: float, t: int, x0: torch.Tensor) -> torch.Tensor:
-        if sigma <= 0 or not has.any():
+        limit = config.clip_scale * sigma
+        if limit <= 0 or not has.any():
             return mean  # the last step adds no noise, so guidance would not be "within noise"
+        base = x0 if config.evaluate_on == "x0" else mean
         p = None
         if config.progress == "denoising":
             p = torch.full((N,), 1.0 - t / K_train)
         delta = torch.zeros_like(mean)
         for _ in range(config.inner_steps):
             with torch.enable_grad():
-                x = (mean + delta).detach().requires_grad_(True)
+                x = (base + delta).detach().requires_grad_(True)
                 # The gradient mask: every row but the adversary's is detached before the
                 # rollout, so the loss cannot move the ego or any other agent.
                 x_in = torch.where(mask, x, x.detach())
@@ -363,7 +367,7 @@ def make_guidance_hook(
                 (grad,) = torch.autograd.grad(loss.sum(), x)
             grad = torch.where(mask, grad, 0.0)
             step = -config.step_size * grad / (grad.abs() + ADAM_EPS)
-            delta = (delta + step).clamp(-sigma, sigma)
+            delta = (delta + step).clamp(-limit, limit)
         return mean + delta
 
     hook.on_lane = on_lane  # for best-of-N scoring with the same off-lane switch
