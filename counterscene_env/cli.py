@@ -121,14 +121,6 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument(
         "--init", metavar="DIR", help="start from this model's weights ('default': shipped)"
     )
-    tr.add_argument(
-        "--perturb",
-        type=float,
-        default=0.0,
-        help="probability of perturbing a non-ego history (closed-loop robustness; default 0)",
-    )
-    tr.add_argument("--perturb-lateral", type=float, default=1.0, help="largest shift, m (1.0)")
-    tr.add_argument("--perturb-heading", type=float, default=0.15, help="largest turn, rad (0.15)")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
     tr.set_defaults(func=_cmd_train)
 
@@ -329,9 +321,6 @@ def _cmd_train(args: argparse.Namespace) -> int:
         seed=args.seed,
         device=args.device,
         init=args.init,
-        perturb=args.perturb,
-        perturb_lateral=args.perturb_lateral,
-        perturb_heading=args.perturb_heading,
     )
     record = train(cfg, progress=not args.quiet)
     print(json.dumps(json_safe(record)))

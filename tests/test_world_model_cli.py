@@ -174,3 +174,37 @@ def test_bench_json(capsys):
     assert result["sampling_steps"] == 10 and result["sampler"] == "ddim"
     assert result["peak_gflops"] > 0 and result["peak_fraction"] > 0
     assert "untrained" in result["model"]
+
+
+def test_init_starts_from_a_model_and_refuses_another_architecture(
+    trained, dataset, tmp_path, capsys
+):
+    # A zero-step run from --init writes the initial weights back: the fine-tune starts there.
+    out = tmp_path / "fine"
+    assert _train(dataset, out, 2, "--init", str(trained), "--lr", "0") == 0
+    start, fine = load_model(trained), load_model(out)
+    for (name, a), (_, b) in zip(
+        start.state_dict().items(), fine.state_dict().items(), strict=True
+    ):
+        assert torch.equal(a, b), name
+    assert fine.normalization == start.normalization
+    capsys.readouterr()
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(dataset),
+                "--out",
+                str(tmp_path / "x"),
+                "--steps",
+                "1",
+                "--init",
+                "default",
+                *TINY,
+                "--quiet",
+            ]
+        )
+        == 1
+    )
+    assert "another architecture" in capsys.readouterr().err

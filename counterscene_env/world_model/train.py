@@ -64,14 +64,6 @@ class TrainConfig:
         device: torch device.
         init: a model directory (or ``"default"``, the shipped one) whose weights and action
             normalisation start the run (fine-tuning); None: a fresh model.
-        perturb: probability that a non-ego agent's history is perturbed in a training window
-            (0: never). A perturbed history is moved rigidly about the agent's current
-            position, sideways by up to ``perturb_lateral`` m and turned by up to
-            ``perturb_heading`` rad, while its future stays the log's: the model learns to
-            steer back to where traffic drives from states off the log, which it meets in
-            closed loop (its own small errors) but never in the recorded data.
-        perturb_lateral: largest sideways shift [m].
-        perturb_heading: largest turn [rad].
     """
 
     data: tuple[str, ...]
@@ -92,9 +84,6 @@ class TrainConfig:
     seed: int = 0
     device: str = "cpu"
     init: str | None = None
-    perturb: float = 0.0
-    perturb_lateral: float = 1.0
-    perturb_heading: float = 0.15
 
 
 def _windows(ds: SceneWindowDataset, rows: Sequence[int]) -> dict[str, torch.Tensor]:
@@ -254,10 +243,6 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             group["lr"] = learning_rate(cfg, step)
         rows = next(batches).to(device)
         batch = {k: v[rows] for k, v in train_data.items()}
-        if cfg.perturb > 0:
-            batch = perturb_history(
-                batch, noise, cfg.perturb, cfg.perturb_lateral, cfg.perturb_heading
-            )
         losses = model.loss(batch, noise)
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
@@ -312,45 +297,6 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     return record
 
 
-def perturb_history(
-    batch: dict[str, torch.Tensor],
-    generator: torch.Generator,
-    prob: float,
-    lateral: float,
-    heading: float,
-) -> dict[str, torch.Tensor]:
-    """A copy of ``batch`` with the histories of some non-ego agents moved rigidly about their
-    current position (see ``TrainConfig.perturb``); futures and the ego are unchanged.
-
-    History ``[B, K, H, 4]`` (x m, y m, yaw rad, speed m/s) in the window frame.
-    """
-    hist = batch["history"]
-    B, K = hist.shape[:2]
-    dev = hist.device
-    pick = torch.rand((B, K), generator=generator, device=dev) < prob
-    pick &= batch["agent_valid"] & batch["history_valid"][..., -1]
-    pick[:, 0] = False  # the ego defines the frame: origin, heading +x
-    shift = (torch.rand((B, K), generator=generator, device=dev) * 2 - 1) * lateral
-    turn = (torch.rand((B, K), generator=generator, device=dev) * 2 - 1) * heading
-    shift, turn = shift * pick, turn * pick
-    now = hist[..., -1, :]  # [B, K, 4]
-    c, s = torch.cos(turn)[..., None], torch.sin(turn)[..., None]
-    rel = hist[..., :2] - now[..., None, :2]
-    rotated = torch.stack(
-        [c * rel[..., 0] - s * rel[..., 1], s * rel[..., 0] + c * rel[..., 1]], -1
-    )
-    normal = torch.stack([-torch.sin(now[..., 2]), torch.cos(now[..., 2])], -1)  # left of heading
-    xy = now[..., None, :2] + rotated + (shift[..., None] * normal)[..., None, :]
-    yaw = hist[..., 2] + turn[..., None]
-    moved = torch.cat(
-        [xy, ((yaw + torch.pi) % (2 * torch.pi) - torch.pi)[..., None], hist[..., 3:]], -1
-    )
-    ok = batch["history_valid"][..., None]
-    out = dict(batch)
-    out["history"] = torch.where(ok, moved, hist)
-    return out
-
-
 def learning_rate(cfg: TrainConfig, step: int) -> float:
     """Learning rate of optimiser step ``step + 1`` (see ``TrainConfig.lr_decay_start``)."""
     start = cfg.lr_decay_start
@@ -367,9 +313,8 @@ def _plain(cfg: TrainConfig) -> dict[str, Any]:
     d["model_overrides"] = {k: v for k, v in sorted(dict(cfg.model_overrides).items())}
     d.pop("device")
     d.pop("out")  # a moved or copied run directory still resumes
-    if not d["perturb"]:  # runs from before perturbation existed still resume
-        for key in ("perturb", "perturb_lateral", "perturb_heading"):
-            d.pop(key)
+    if d["init"] is None:
+        d.pop("init")  # runs from before --init existed still resume
     d["steps"] = None  # a longer --steps continues the same run
     d["lr_decay_start"] = None  # and so may the tail of the schedule
     return d
