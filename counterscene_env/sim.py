@@ -548,7 +548,21 @@ class ClosedLoop:
                     if row >= 0:
                         exclude[j, row] = True
             rep = lambda x: x.repeat_interleave(S, 0)  # noqa: E731
-            traj = pred.trajectory.reshape(W * S, *pred.trajectory.shape[2:])
+            traj = pred.trajectory.reshape(W * S, *pred.trajectory.shape[2:]).clone()
+            # The ego's future is its policy's, not the model's guess: agents are scored
+            # against the ego held at its current speed and course (a braking or stopped
+            # ego must not be run into because the model expected it to drive on).
+            state = rep(self.model.current_state(batch))  # [W S, K, 4] window frame
+            steps = torch.arange(1, traj.shape[-2] + 1, dtype=traj.dtype) * self.model.config.dt
+            for j, ego in enumerate(ego_rows):
+                if ego < 0:
+                    continue
+                x, y, course, v = state[j * S, ego].unbind(-1)
+                path = torch.stack(
+                    [x + v * steps * torch.cos(course), y + v * steps * torch.sin(course)], -1
+                )
+                traj[j * S : (j + 1) * S, ego, :, :2] = path
+                traj[j * S : (j + 1) * S, ego, :, 2] = course
             lanes = tuple(rep(batch[k]) for k in ("map", "map_valid", "map_widths"))
             cost += w * plan_cost(
                 traj, rep(pred.valid), rep(batch["extents"]), lanes, rep(exclude)
