@@ -274,9 +274,9 @@ class ClosedLoop:
             plan_start=np.zeros(N, np.int64),
             planned=np.zeros(N, bool),
         )
-        if not self.guidance.enabled:
-            ep.selection = Selection(self.config.selector, None, "guidance is off", 0)
-        elif self.config.selection_source == "log":
+        # The adversary is selected (and kept in the model's window) with guidance off too, so
+        # an unguided run reports the same agent's collisions and clearance as a guided one.
+        if self.config.selection_source == "log":
             ep.selection = self._select(ep, *self._log_future(ep), start_step=start + 1)
         return ep
 
@@ -446,7 +446,7 @@ class ClosedLoop:
         kwargs = dict(
             sampler=c.sampler, steps=c.sampling_steps, eta=c.eta, map_guidance=c.map_guidance
         )
-        if g.enabled and c.selection_source == "model":
+        if c.selection_source == "model":
             # Re-select on the world model's own unguided prediction of the ego's window.
             items = [
                 make_window(sim, ep.t, self.window_config, ep.segments)
