@@ -147,8 +147,9 @@ def test_no_candidate_falls_back_and_says_why(model):
 
 def test_unguided_runs_still_name_the_adversary(model):
     # Guidance off: the same agent is selected (for comparable metrics), just not guided.
-    off, infos = run(model, [crossing_scene()], [0], SimConfig(duration=0.5, guidance="none"))
-    assert off.selection(0).conflict.agent == 1 and infos[-1][0]["adversary"] == "a1"
+    off = ClosedLoop(model, SimConfig(duration=9.0, guidance="none"))
+    infos = off.reset([crossing_scene()], [0])
+    assert off.selection(0).conflict.agent == 1 and infos[0]["adversary"] == "a1"
 
 
 def test_the_adversary_is_kept_in_the_model_window(model):
