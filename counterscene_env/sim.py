@@ -16,10 +16,11 @@ world-model call (scenes are windows of a common agent count K, padded). Per epi
   guidance loss of ``num_samples`` is kept. The ego's predicted row is only the guidance's
   reference: the ego follows its policy.
 - **Who moves how.** An agent exists at a step exactly when the log says so (agents leave and
-  enter as recorded). A present agent follows its current plan; one that was never planned
-  (outside the model's window: beyond ``agent_radius`` or the K nearest) replays the log;
-  one that just entered starts at its logged state; one whose plan ran out keeps its speed
-  and course.
+  enter as recorded). An agent in the model's window follows its current plan; one that was
+  never planned (outside the window: beyond ``agent_radius`` or the K nearest) replays the
+  log, and so does one that just entered; one the model planned before but no longer sees
+  continues as a highway-env IDM lane follower (its stale open-loop plan would drift off the
+  road); one whose plan ran out keeps its speed and course.
 - **Every step records** ego collisions (oriented boxes), off-road, the ego's signed
   longitudinal acceleration and hard braking, the smallest constant-velocity TTC, and the
   adversary's distance; :meth:`ClosedLoop.scene` returns the simulated :class:`Scene` for
@@ -401,7 +402,9 @@ class ClosedLoop:
         ``cover_radius`` from every window centre get windows of their own, centred on the
         uncovered agent nearest the ego, up to ``max_windows``: the model sees the lanes and
         neighbours around each agent it plans, not only around the ego. Each window's
-        ``plan_rows`` are the agents whose plans it supplies.
+        ``plan_rows`` are the agents whose plans it supplies. The default is one window
+        (``max_windows=1``): the shipped model, trained on ego-centred windows, drives worse
+        in windows centred on other agents (measured, docs/closed_loop.md).
         """
         c, t = self.config, ep.t
         wc = self.window_config
@@ -435,8 +438,7 @@ class ClosedLoop:
             covered[mine] = True
             covered[centre] = True
             items.append(item)
-        # Agents left uncovered keep the plan of the first window that holds them.
-        return items
+        return items  # agents left uncovered continue as IDM lane followers (_replan)
 
     def _replan(self, due: list[int]) -> None:
         started = time.perf_counter()
@@ -511,9 +513,10 @@ class ClosedLoop:
             ep.plan_speeds[rows] = chosen[..., 3]
             ep.plan_start[rows] = ep.t + 1
             ep.planned[rows] = True
-            # Agents the model planned before but no longer sees (they left its window)
-            # continue as highway-env IDM lane followers rather than on a stale open-loop
-            # plan; an agent back in view is the model's again.
+
+        # Agents the model planned before but no longer sees (they left its window) continue
+        # as highway-env IDM lane followers rather than on a stale open-loop plan; an agent
+        # back in view is the model's again.
         planned_now: dict[int, set[int]] = {}
         for o, item in zip(owner, items, strict=True):
             planned_now.setdefault(o, set()).update(item["plan_rows"])
