@@ -176,3 +176,16 @@ def test_bad_input_is_refused_with_a_clear_error(model, generated):
         SimConfig(guidance="max")
     with pytest.raises(ValueError, match="unknown simulation keys"):
         SimConfig.from_mapping({"replan": 3})
+
+
+def test_model_source_reselects_at_every_replan(model, generated):
+    scene = generated["merge"]
+    loop = ClosedLoop(model, SimConfig(duration=1.0, num_samples=2, selection_source="model"))
+    infos = loop.reset([scene], [0])
+    assert infos[0]["fallback"] == "not selected yet"  # nothing is mined from the log
+    sources = []
+    while not loop.done.all():
+        info = loop.step(np.zeros((1, 2)))[0]
+        sources.append((info["replanned"], info["fallback"]))
+    assert [r for r, _ in sources].count(True) == 2  # steps 0 and 5 of 10
+    assert sources[0][1] != "not selected yet"  # mined on the model's own sample
