@@ -265,11 +265,11 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         f"{args.selector}, guidance {args.guidance} (source {args.source}, "
         f"{args.samples} samples)"
     )
-    print(f"{'':8s}" + "".join(f"{k:>8s}" for k in ("ADE", "FDE", "ORR", "HBR", "CR")))
+    print(f"{'':8s}" + "".join(f"{k:>10s}" for k in ("ADE", "FDE", "ORR", "HBR", "CR")))
     for name, row in summary["horizons"].items():
         print(
             f"{name:8s}"
-            + "".join(f"{_fmt(row[k]):>8s}" for k in ("ADE", "FDE", "ORR", "HBR", "CR"))
+            + "".join(f"{_fmt(row[k]):>10s}" for k in ("ADE", "FDE", "ORR", "HBR", "CR"))
         )
     print(
         f"episode CR {_fmt(summary['cr'])}, ego-adversary CR {_fmt(summary['cr_ego_adversary'])}, "
