@@ -53,6 +53,7 @@ from counterscene_env.adversary.guidance import (
     sample_losses,
 )
 from counterscene_env.adversary.selection import METHODS, Conflict, Selection, select_adversary
+from counterscene_env.config import from_mapping
 from counterscene_env.planners import IDMPlanner
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.dataset import lane_segments, make_window
@@ -129,11 +130,7 @@ class SimConfig:
     @classmethod
     def from_mapping(cls, values: Mapping) -> SimConfig:
         """Build from a dict; unknown keys raise and name the valid ones."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - names)
-        if unknown:
-            raise ValueError(f"unknown simulation keys {unknown}; valid keys: {sorted(names)}")
-        return cls(**values)
+        return from_mapping(cls, values, "simulation")
 
     @property
     def guidance_config(self) -> GuidanceConfig:

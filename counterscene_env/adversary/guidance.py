@@ -40,6 +40,7 @@ from counterscene_env.adversary.selection import (
     REAR_APPROACH,
     Conflict,
 )
+from counterscene_env.config import from_mapping
 from counterscene_env.world_model.map_guidance import ON_LANE_TOLERANCE, lane_excess
 
 #: Adam's epsilon: the sign-like step is ``lr * g / (|g| + ADAM_EPS)``.
@@ -85,11 +86,8 @@ class GuidanceConfig:
 
     @classmethod
     def from_mapping(cls, values: Mapping) -> GuidanceConfig:
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - names)
-        if unknown:
-            raise ValueError(f"unknown guidance keys {unknown}; valid keys: {sorted(names)}")
-        return cls(**values)
+        """Build from a dict; unknown keys raise and name the valid ones."""
+        return from_mapping(cls, values, "guidance")
 
 
 #: The paper's ablation rows (Table 4) plus the unguided world model.
