@@ -62,6 +62,9 @@ class GuidanceConfig:
         inner_steps: gradient steps per denoising step (their sum is clipped to +-sigma_t).
         progress: what p measures: ``"rollout"`` (closed-loop step / horizon, the appendix and
             the public code) or ``"denoising"`` (the paper's main text).
+        clip_scale: the step is clipped to +-``clip_scale`` sigma_t (DESIGN: 1).
+        evaluate_on: where the loss gradient is taken: the posterior ``"mean"`` (DESIGN) or
+            the predicted clean actions ``"x0"``; the step goes to the mean either way.
     """
 
     enabled: bool = True
@@ -81,8 +84,10 @@ class GuidanceConfig:
             raise ValueError(f"progress must be 'rollout' or 'denoising', got {self.progress!r}")
         if self.inner_steps < 1:
             raise ValueError(f"inner_steps must be >= 1, got {self.inner_steps}")
-        if self.step_size < 0 or self.map_weight < 0:
-            raise ValueError("step_size and map_weight must be >= 0")
+        if self.step_size < 0 or self.map_weight < 0 or self.clip_scale < 0:
+            raise ValueError("step_size, map_weight and clip_scale must be >= 0")
+        if self.evaluate_on not in ("mean", "x0"):
+            raise ValueError(f"evaluate_on must be 'mean' or 'x0', got {self.evaluate_on!r}")
 
     @classmethod
     def from_mapping(cls, values: Mapping) -> GuidanceConfig:
