@@ -184,7 +184,9 @@ def _parser() -> argparse.ArgumentParser:
     st.add_argument("--episodes", type=int, default=50, help="episodes (default 50)")
     st.add_argument("--seed", type=int, default=100000, help="seed of episode 0 (default 100000)")
     st.add_argument(
-        "--planner", default="idm", help="ego planner: idm, constant_velocity, log (default idm)"
+        "--planner",
+        default="idm",
+        help="ego planner: idm, idm_yield, constant_velocity, log (default idm)",
     )
     st.add_argument(
         "--selector",

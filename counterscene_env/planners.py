@@ -8,7 +8,8 @@ state, ``next_state(state) -> [4]`` (x m, y m, yaw rad, speed m/s), written as i
 
 - :class:`IDMPlanner`: a reactive lane follower with highway-env's own ``IDMVehicle`` logic
   (IDM on the vehicle ahead in its lane, lane-keeping steering, no lane changes) on the scene's
-  road, along the lanes of the logged ego's route.
+  road, along the lanes of the logged ego's route. ``idm_yield`` adds highway-env's
+  intersection priority rule (``RegulatedRoad``): it gives way to crossing traffic.
 - :class:`ConstantVelocityPlanner`: zero acceleration and steering.
 - :class:`LogReplayPlanner`: the factual ego, non-reactive (the paper's protocol).
 """
@@ -18,6 +19,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+from highway_env.road.regulation import RegulatedRoad
 from highway_env.road.road import Road
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.kinematics import Vehicle
@@ -78,14 +80,26 @@ class IDMPlanner:
         target_speed: desired speed [m/s]; default: the fastest the agent drove in the 3 s
             before it started (at least ``min_target_speed``).
         min_target_speed: floor of the default target speed [m/s].
+        yield_to_traffic: also apply highway-env's intersection rule (``RegulatedRoad``):
+            when a conflict within 3 s is possible with a vehicle (constant-speed projection,
+            ``is_conflict_possible``) and the lane priorities say the ego gives way
+            (``respect_priorities``), its target speed is 0 for that step.
     """
 
     name = "idm"
     replays_log = False
 
-    def __init__(self, target_speed: float | None = None, min_target_speed: float = 5.0) -> None:
+    def __init__(
+        self,
+        target_speed: float | None = None,
+        min_target_speed: float = 5.0,
+        yield_to_traffic: bool = False,
+    ) -> None:
         self.target_speed = target_speed
         self.min_target_speed = min_target_speed
+        self.yield_to_traffic = yield_to_traffic
+        if yield_to_traffic:
+            self.name = "idm_yield"
 
     def reset(
         self, scene: Scene, seed: int, agent: int | None = None, t: int | None = None
@@ -141,11 +155,26 @@ class IDMPlanner:
                 other.heading, other.speed = float(state.yaws[i]), float(state.speeds[i])
                 present.append(other)
         self.road.vehicles = [v, *present]
+        cruise = v.target_speed
+        if self.yield_to_traffic and self._must_yield(v, present):
+            v.target_speed = 0.0  # as RegulatedRoad.enforce_road_rules does
         v.act()
+        v.target_speed = cruise
         acc, steer = float(v.action["acceleration"]), float(v.action["steering"])
         # IDM may ask a stopped car to "brake" further; a lane follower does not reverse.
         acc = max(acc, -v.speed / self.dt)
         return np.array([acc, steer])
+
+    @staticmethod
+    def _must_yield(v: IDMVehicle, others: list[Vehicle], radius: float = 40.0) -> bool:
+        for other in others:
+            if np.linalg.norm(other.position - v.position) > radius:
+                continue
+            if RegulatedRoad.is_conflict_possible(v, other):
+                other.on_state_update()  # its lane, for the priority rule
+                if RegulatedRoad.respect_priorities(v, other) is v:
+                    return True
+        return False
 
     def drive(self, state: WorldState) -> np.ndarray:
         """Act and advance the agent one step through highway-env's bicycle model; returns its
@@ -161,6 +190,7 @@ class IDMPlanner:
 
 PLANNERS = {
     "idm": IDMPlanner,
+    "idm_yield": lambda: IDMPlanner(yield_to_traffic=True),
     "constant_velocity": ConstantVelocityPlanner,
     "log": LogReplayPlanner,
 }

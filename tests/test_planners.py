@@ -97,3 +97,27 @@ def test_make_planner_names_and_aliases():
     assert isinstance(make_planner("replay"), LogReplayPlanner)
     with pytest.raises(ValueError, match=r"unknown planner 'mpc'.*idm"):
         make_planner("mpc")
+
+
+def test_idm_yield_gives_way_to_a_crossing_car_plain_idm_does_not():
+    # Ego at x = 50 east at 10 m/s; a car 5 m south of the lane at x = 60 drives north at
+    # 5 m/s: both reach (60, 0) in about 1 s. The ego is farther from the crossing, so
+    # highway-env's priority rule makes it give way.
+    T = 40
+    t = np.arange(T) * 0.1
+    ego = np.stack([20 + 10 * t, np.zeros(T)], -1)
+    cross = np.stack([np.full(T, 60.0), -5 + 5 * (t - 3.0)], -1)
+    scene = make_scene(
+        np.stack([ego, cross]),
+        yaws=np.stack([np.zeros(T), np.full(T, np.pi / 2)]),
+        speeds=np.stack([np.full(T, 10.0), np.full(T, 5.0)]),
+        current_index=30,
+    )
+    plain, polite = make_planner("idm"), make_planner("idm_yield")
+    for p in (plain, polite):
+        p.reset(scene, 0)
+    assert plain.act(state_of(scene))[0] > -1.0  # nothing in its lane
+    assert polite.act(state_of(scene))[0] < -3.0  # yields
+    free, eager = lane_scene(lead_gap=None), IDMPlanner(target_speed=15.0, yield_to_traffic=True)
+    eager.reset(free, 0)
+    assert eager.act(state_of(free))[0] > 0.5  # nothing to yield to
