@@ -4,6 +4,10 @@ causally selected adversary is steered by counterfactual guidance (DESIGN 2).
 One :class:`ClosedLoop` advances B episodes together, so that every replan is one batched
 world-model call (scenes are windows of a common agent count K, padded). Per episode:
 
+- **Egos.** One or more agents are driven by external policies: the scene's ego by default,
+  or any rows given to :meth:`ClosedLoop.reset` (the PettingZoo env's ``ego_0 .. ego_{n-1}``).
+  Each ego has its own causally selected adversary (distinct, never another ego) and its own
+  model window centred on it, where its adversary is guided.
 - **Start.** At the scene's ``current_index`` (3 s of history), from the log. The adversary is
   selected on the factual future (``selection_source="log"``, the paper) or re-selected at
   every replan from the world model's own unguided prediction (``"model"``).
@@ -172,11 +176,12 @@ class _Episode:
     speeds: np.ndarray  # [N, T]
     valid: np.ndarray  # [N, T] simulated steps so far (log validity)
     source: np.ndarray  # [N, T] int8, how each agent moved into each step (MOTION_SOURCES)
-    ego: Vehicle
+    egos: list[int]  # rows driven by external policies; egos[0] is factual.ego_index
+    vehicles: list[Vehicle]  # one highway-env bicycle per ego
     segments: tuple[np.ndarray, np.ndarray]
     generator: torch.Generator
     rng: np.random.Generator
-    selection: Selection
+    selections: list[Selection]  # one per ego
     plan_positions: np.ndarray  # [N, F, 2]
     plan_yaws: np.ndarray  # [N, F]
     plan_speeds: np.ndarray  # [N, F]
@@ -184,16 +189,26 @@ class _Episode:
     planned: np.ndarray  # [N] bool
     replans: int = 0
     replan_seconds: float = 0.0  # this episode's share of the batched replan calls
-    records: list[dict] = field(default_factory=list)
+    records: list[list[dict]] = field(default_factory=list)  # per step, one info per ego
     background: dict = field(default_factory=dict)  # row -> IDMPlanner (out of the window)
 
     @property
+    def selection(self) -> Selection:
+        """The first ego's selection."""
+        return self.selections[0]
+
+    @property
     def conflict(self) -> Conflict | None:
-        return self.selection.conflict
+        return self.selections[0].conflict
 
     @property
     def adversary(self) -> int | None:
         return None if self.conflict is None else self.conflict.agent
+
+    @property
+    def adversaries(self) -> list[int | None]:
+        """Each ego's adversary row (None: fallback)."""
+        return [None if s.conflict is None else s.conflict.agent for s in self.selections]
 
     @property
     def done(self) -> bool:
@@ -224,31 +239,72 @@ class ClosedLoop:
         self.episodes: list[_Episode] = []
 
     # ------------------------------------------------------------------ episode control
-    def reset(self, scenes: Sequence[Scene], seeds: Sequence[int]) -> list[dict]:
-        """Start one episode per scene; returns each one's first info dict (step ``now``)."""
+    def reset(
+        self,
+        scenes: Sequence[Scene],
+        seeds: Sequence[int],
+        egos: Sequence[Sequence[int]] | None = None,
+    ) -> list[dict]:
+        """Start one episode per scene.
+
+        Args:
+            scenes: the factual scenes.
+            seeds: one seed per episode (its torch and numpy generators).
+            egos: per scene, the agent rows driven by external policies (default: the
+                scene's ego alone). Every episode of a batch has the same number of egos; the
+                first one becomes the scene's ego (the frame of its model window).
+
+        Returns:
+            Each episode's first ego's info dict at step ``now`` (:meth:`infos` has all).
+        """
         if len(scenes) != len(seeds):
             raise ValueError(f"{len(scenes)} scenes but {len(seeds)} seeds")
         if not scenes:
             raise ValueError("reset needs at least one scene")
-        self.episodes = [self._start(s, int(seed)) for s, seed in zip(scenes, seeds, strict=True)]
-        return [self._info(ep, replanned=False) for ep in self.episodes]
+        if egos is None:
+            egos = [[s.ego_index] for s in scenes]
+        if len(egos) != len(scenes) or len({len(e) for e in egos}) != 1:
+            raise ValueError("egos needs one list per scene, all of the same length")
+        self.episodes = [
+            self._start(s, int(seed), [int(r) for r in rows])
+            for s, seed, rows in zip(scenes, seeds, egos, strict=True)
+        ]
+        for ep in self.episodes:
+            ep.records.append([self._info(ep, k, replanned=False) for k in range(len(ep.egos))])
+        return [ep.records[-1][0] for ep in self.episodes]
 
-    def _start(self, scene: Scene, seed: int) -> _Episode:
+    @property
+    def num_egos(self) -> int:
+        """Egos per episode."""
+        return len(self.episodes[0].egos) if self.episodes else 1
+
+    def _start(self, scene: Scene, seed: int, egos: list[int]) -> _Episode:
         start = scene.current_index
         steps = min(round(self.config.duration / scene.dt), scene.num_steps - 1 - start)
         if steps < 1:
             raise ValueError(f"scene {scene.scenario_id!r} has no future after step {start}")
-        if not scene.valid[scene.ego_index, start]:
-            raise ValueError(f"the ego of {scene.scenario_id!r} is not valid at step {start}")
+        if not egos or len(set(egos)) != len(egos):
+            raise ValueError(f"egos must be distinct agent rows, got {egos}")
+        for r in egos:
+            if not 0 <= r < scene.num_agents:
+                raise ValueError(f"ego row {r} out of range: the scene has {scene.num_agents}")
+            if not scene.valid[r, start]:
+                raise ValueError(
+                    f"agent {scene.agent_ids[r]!r} of {scene.scenario_id!r} is not valid at "
+                    f"step {start} and cannot be an ego"
+                )
+        scene = scene.replace(ego_index=egos[0]) if egos[0] != scene.ego_index else scene
         end = start + steps
         N, F = scene.num_agents, self.model.config.future_steps
         valid = np.zeros((N, end + 1), bool)
         valid[:, : start + 1] = scene.valid[:, : start + 1]
-        e = scene.ego_index
         road = Road(network=scene.road.network, vehicles=[], np_random=np.random.default_rng(0))
-        ego = Vehicle(road, scene.positions[e, start].copy(), scene.yaws[e, start], 0.0)
-        ego.speed = float(scene.speeds[e, start])
-        ego.LENGTH, ego.WIDTH = (float(x) for x in scene.extents[e])  # the bicycle's wheelbase
+        vehicles = []
+        for e in egos:
+            v = Vehicle(road, scene.positions[e, start].copy(), scene.yaws[e, start], 0.0)
+            v.speed = float(scene.speeds[e, start])
+            v.LENGTH, v.WIDTH = (float(x) for x in scene.extents[e])  # the bicycle's wheelbase
+            vehicles.append(v)
         rng = np.random.default_rng(seed)
         c = self.window_config
         ep = _Episode(
@@ -261,11 +317,12 @@ class ClosedLoop:
             speeds=scene.speeds[:, : end + 1].copy(),
             valid=valid,
             source=np.zeros((N, end + 1), np.int8),
-            ego=ego,
+            egos=egos,
+            vehicles=vehicles,
             segments=lane_segments(scene, c.lane_segment_length, c.lane_points),
             generator=torch.Generator().manual_seed(seed),
             rng=rng,
-            selection=Selection(self.config.selector, None, "not selected yet", 0),
+            selections=[Selection(self.config.selector, None, "not selected yet", 0)] * len(egos),
             plan_positions=np.zeros((N, F, 2)),
             plan_yaws=np.zeros((N, F)),
             plan_speeds=np.zeros((N, F)),
@@ -275,7 +332,9 @@ class ClosedLoop:
         # The adversary is selected (and kept in the model's window) with guidance off too, so
         # an unguided run reports the same agent's collisions and clearance as a guided one.
         if self.config.selection_source == "log":
-            ep.selection = self._select(ep, *self._log_future(ep), start_step=start + 1)
+            future = self._log_future(ep)
+            for k in range(len(egos)):
+                ep.selections[k] = self._select(ep, k, *future, start_step=start + 1)
         return ep
 
     @property
@@ -308,18 +367,21 @@ class ClosedLoop:
 
         Args:
             actions: ``[B, 2]`` ego actions, (acceleration m/s^2, steering rad), through the
-                highway-env bicycle model.
+                highway-env bicycle model; ``[B, E, 2]`` with E egos per episode.
             ego_states: ``[B, 4]`` (x m, y m, yaw rad, speed m/s) written as the ego's next
-                state instead (log replay); a row of NaN uses ``actions`` for that episode.
+                state instead (log replay, or an ego stepped by the caller); ``[B, E, 4]``
+                with E egos. A row of NaN uses ``actions`` for that ego.
 
         Returns:
-            One info dict per episode (module docstring; finished episodes repeat their last).
+            The first ego's info dict of each episode (module docstring; finished episodes
+            repeat their last); :meth:`infos` gives every ego's.
         """
         B = len(self.episodes)
         if not B:
             raise RuntimeError("call reset() before step()")
-        actions = _check_rows(actions, B, 2, "actions")
-        ego_states = _check_rows(ego_states, B, 4, "ego_states", allow_nan_rows=True)
+        E = self.num_egos
+        actions = _check_rows(actions, B, E, 2, "actions")
+        ego_states = _check_rows(ego_states, B, E, 4, "ego_states", allow_nan_rows=True)
         active = [b for b, ep in enumerate(self.episodes) if not ep.done]
         due = [
             b
@@ -328,21 +390,21 @@ class ClosedLoop:
         ]
         if due:
             self._replan(due)
-        infos = []
-        for b, ep in enumerate(self.episodes):
-            if ep.done:
-                infos.append(ep.records[-1] if ep.records else self._info(ep, False))
-                continue
-            state = None if ego_states is None else ego_states[b]
-            if state is not None and np.isnan(state).all():
-                state = None
-            if state is None and actions is None:
-                raise ValueError("step needs actions or ego_states for every running episode")
-            self._advance(ep, None if actions is None else actions[b], state)
-            info = self._info(ep, replanned=b in due)
-            ep.records.append(info)
-            infos.append(info)
-        return infos
+        for b in active:
+            ep = self.episodes[b]
+            states = [None] * E if ego_states is None else list(ego_states[b])
+            for k, state in enumerate(states):
+                if state is not None and np.isnan(state).all():
+                    states[k] = None
+                if states[k] is None and actions is None:
+                    raise ValueError("step needs actions or ego_states for every running ego")
+            self._advance(ep, None if actions is None else actions[b], states)
+            ep.records.append([self._info(ep, k, replanned=b in due) for k in range(E)])
+        return [ep.records[-1][0] for ep in self.episodes]
+
+    def infos(self, b: int) -> list[dict]:
+        """Episode ``b``'s latest info dict of every ego (in ``egos`` order)."""
+        return list(self.episodes[b].records[-1])
 
     # ------------------------------------------------------------------ selection
     def _log_future(self, ep: _Episode) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -352,6 +414,7 @@ class ClosedLoop:
     def _select(
         self,
         ep: _Episode,
+        k: int,
         positions: np.ndarray,
         valid: np.ndarray,
         speeds: np.ndarray,
@@ -359,10 +422,14 @@ class ClosedLoop:
         rows: np.ndarray | None = None,
         yaws: np.ndarray | None = None,
     ) -> Selection:
-        """Select on future tracks; ``rows`` maps their rows to scene rows (None: identity)."""
+        """Select ego ``k``'s adversary on future tracks; ``rows`` maps their rows to scene rows
+        (None: identity). Other egos, and the adversaries of egos before ``k``, are not
+        eligible: every ego gets its own world-model adversary."""
         scene = ep.factual
         rows = np.arange(scene.num_agents) if rows is None else rows
-        ego = int(np.flatnonzero(rows == scene.ego_index)[0])
+        ego = int(np.flatnonzero(rows == ep.egos[k])[0])
+        taken = set(ep.egos) | {a for a in ep.adversaries[:k] if a is not None}
+        eligible = (scene.agent_types[rows] == "vehicle") & ~np.isin(rows, sorted(taken))
         sel = select_adversary(
             self.config.selector,
             positions,
@@ -371,7 +438,7 @@ class ClosedLoop:
             speeds=speeds,
             extents=scene.extents[rows],
             yaws=yaws,
-            eligible=scene.agent_types[rows] == "vehicle",
+            eligible=eligible,
             dt=scene.dt,
             start_step=start_step,
             strict=self.config.strict_gates,
@@ -395,7 +462,9 @@ class ClosedLoop:
     def _windows(self, ep: _Episode, sim: Scene) -> list[dict]:
         """The model windows of one episode at its current step.
 
-        The first is centred on the ego (with the adversary forced in). Agents farther than
+        The first E are centred on the E egos, each with its adversary forced in; an agent
+        seen by several is planned by the first (its adversary's by its own, where it is
+        guided). Agents farther than
         ``cover_radius`` from every window centre get windows of their own, centred on the
         uncovered agent nearest the ego, up to ``max_windows``: the model sees the lanes and
         neighbours around each agent it plans, not only around the ego. Each window's
@@ -405,21 +474,31 @@ class ClosedLoop:
         """
         c, t = self.config, ep.t
         wc = self.window_config
-        include = () if ep.adversary is None else (ep.adversary,)
-        first = make_window(sim, t, wc, ep.segments, include=include)
         e = sim.ego_index
         pos = sim.positions[:, t]
         movable = sim.valid[:, t] & (sim.agent_types == "vehicle")
-        movable[e] = False
-        first["plan_rows"] = [int(r) for r in first["rows"] if r >= 0 and r != e]
-        items = [first]
+        movable[ep.egos] = False
+        adversaries = [a for a in ep.adversaries if a is not None]
+        items = []
+        claimed = np.zeros(sim.num_agents, bool)
+        claimed[ep.egos] = True
+        claimed[adversaries] = True
         covered = np.zeros(sim.num_agents, bool)
-        covered[first["rows"][first["rows"] >= 0]] = True
-        near = np.linalg.norm(pos - pos[e], axis=-1) <= c.cover_radius
-        covered &= near
-        if ep.adversary is not None:
-            covered[ep.adversary] = True  # guided in the ego's window, wherever it is
-        while len(items) < c.max_windows:
+        for ego, adv in zip(ep.egos, ep.adversaries, strict=True):
+            include = () if adv is None else (adv,)
+            view = sim if ego == e else sim.replace(ego_index=ego)
+            item = make_window(view, t, wc, ep.segments, include=include)
+            rows = item["rows"][item["rows"] >= 0]
+            mine = [int(r) for r in rows if not claimed[r]]
+            own = [] if adv is None or adv not in rows else [adv]
+            item["plan_rows"] = own + mine
+            item["ego"] = len(items)  # which ego's window (-1: an extra one)
+            claimed[mine] = True
+            near = np.linalg.norm(pos[rows] - pos[ego], axis=-1) <= c.cover_radius
+            covered[rows[near]] = True
+            items.append(item)
+        covered[adversaries] = True  # guided in their ego's window, wherever they are
+        while len(items) < max(c.max_windows, len(ep.egos)):
             left = np.flatnonzero(movable & ~covered)
             if not left.size:
                 break
@@ -432,6 +511,7 @@ class ClosedLoop:
                 & (np.linalg.norm(pos[rows] - pos[centre], axis=-1) <= c.cover_radius)
             ]
             item["plan_rows"] = [int(r) for r in mine]
+            item["ego"] = -1
             covered[mine] = True
             covered[centre] = True
             items.append(item)
@@ -446,35 +526,42 @@ class ClosedLoop:
             sampler=c.sampler, steps=c.sampling_steps, eta=c.eta, map_guidance=c.map_guidance
         )
         if c.selection_source == "model":
-            # Re-select on the world model's own unguided prediction of the ego's window.
-            items = [
-                make_window(sim, ep.t, self.window_config, ep.segments)
-                for sim, ep in zip(sims, eps, strict=True)
-            ]
-            pred = model.sample(_collate(items), 1, [ep.generator for ep in eps], **kwargs)
-            for i, (ep, item) in enumerate(zip(eps, items, strict=True)):
-                ok = (item["rows"] >= 0) & pred.valid[i].numpy()
-                traj = pred.trajectory[i, 0].numpy()[ok]  # [A, F, 4] window frame
+            # Re-select on the world model's own unguided prediction of each ego's window.
+            owner, items = [], []
+            for i, (sim, ep) in enumerate(zip(sims, eps, strict=True)):
+                for ego in ep.egos:
+                    view = sim if ego == sim.ego_index else sim.replace(ego_index=ego)
+                    items.append(make_window(view, ep.t, self.window_config, ep.segments))
+                    owner.append(i)
+            pred = model.sample(_collate(items), 1, [eps[o].generator for o in owner], **kwargs)
+            for j, (o, item) in enumerate(zip(owner, items, strict=True)):
+                ep = eps[o]
+                k = ep.egos.index(int(item["rows"][0]))
+                ok = (item["rows"] >= 0) & pred.valid[j].numpy()
+                traj = pred.trajectory[j, 0].numpy()[ok]  # [A, F, 4] window frame
                 xy, yaw = _to_world(traj[..., :2], traj[..., 2], item["origin"])
                 valid = np.ones(xy.shape[:2], bool)
                 rows = item["rows"][ok]
-                ep.selection = self._select(ep, xy, valid, traj[..., 3], ep.t + 1, rows, yaw)
+                ep.selections[k] = self._select(ep, k, xy, valid, traj[..., 3], ep.t + 1, rows, yaw)
 
-        # Every window of every episode in one batched call; window 0 of each is the ego's.
+        # Every window of every episode in one batched call; each ego's own window first.
         owner, items = [], []
         for i, (sim, ep) in enumerate(zip(sims, eps, strict=True)):
             for item in self._windows(ep, sim):
                 owner.append(i)
                 items.append(item)
         batch = _collate(items)
-        first = [j == 0 or owner[j] != owner[j - 1] for j in range(len(items))]
+        conflicts = [
+            eps[o].selections[item["ego"]].conflict if item["ego"] >= 0 else None
+            for item, o in zip(items, owner, strict=True)
+        ]
         adv_rows = [
-            _window_row(item["rows"], eps[o].adversary) if head else -1
-            for item, o, head in zip(items, owner, first, strict=True)
+            -1 if conflict is None else _window_row(item["rows"], conflict.agent)
+            for item, conflict in zip(items, conflicts, strict=True)
         ]
         S = c.num_samples
         targets = make_targets(
-            [eps[o].conflict for o in owner],
+            conflicts,
             adv_rows,
             np.stack([item["origin"] for item in items]),
             [eps[o].t for o in owner],
@@ -486,7 +573,7 @@ class ClosedLoop:
         pred = model.sample(batch, S, gens, guidance=hook, **kwargs)
 
         ego_rows = [
-            _window_row(item["rows"], eps[o].factual.ego_index)
+            [r for r in (_window_row(item["rows"], e) for e in eps[o].egos) if r >= 0]
             for item, o in zip(items, owner, strict=True)
         ]
         best = np.zeros(len(items), np.int64)
@@ -524,7 +611,7 @@ class ClosedLoop:
                     del ep.background[r]
             for r in np.flatnonzero(ep.planned & ep.valid[:, ep.t]):
                 r = int(r)
-                if r not in now and r not in ep.background and r != ep.factual.ego_index:
+                if r not in now and r not in ep.background and r not in ep.egos:
                     idm = IDMPlanner()
                     idm.reset(ep.factual, int(ep.rng.integers(2**31)), agent=r, t=ep.t)
                     ep.background[r] = idm
@@ -532,9 +619,11 @@ class ClosedLoop:
             ep.replans += 1
             ep.replan_seconds += (time.perf_counter() - started) / len(eps)
 
-    def _choose(self, batch, pred, hook, adv_rows: list[int], ego_rows: list[int]) -> torch.Tensor:
+    def _choose(
+        self, batch, pred, hook, adv_rows: list[int], ego_rows: list[list[int]]
+    ) -> torch.Tensor:
         """``[W]`` best sample per window: lowest guidance loss plus ``realism_weight`` times
-        the realism cost of everyone but the ego (whose plan is never executed) and the
+        the realism cost of everyone but the egos (whose plans are never executed) and the
         adversary (which the guidance steers)."""
         W, S, K = pred.trajectory.shape[:3]
         cost = torch.zeros(W, S)
@@ -543,8 +632,8 @@ class ClosedLoop:
         w = self.config.realism_weight
         if w > 0:
             exclude = torch.zeros(W, K, dtype=torch.bool)
-            for j, (adv, ego) in enumerate(zip(adv_rows, ego_rows, strict=True)):
-                for row in (adv, ego):
+            for j, (adv, egos) in enumerate(zip(adv_rows, ego_rows, strict=True)):
+                for row in (adv, *egos):
                     if row >= 0:
                         exclude[j, row] = True
             rep = lambda x: x.repeat_interleave(S, 0)  # noqa: E731
@@ -554,15 +643,15 @@ class ClosedLoop:
             # ego must not be run into because the model expected it to drive on).
             state = rep(self.model.current_state(batch))  # [W S, K, 4] window frame
             steps = torch.arange(1, traj.shape[-2] + 1, dtype=traj.dtype) * self.model.config.dt
-            for j, ego in enumerate(ego_rows):
-                if ego < 0:
-                    continue
-                x, y, course, v = state[j * S, ego].unbind(-1)
-                path = torch.stack(
-                    [x + v * steps * torch.cos(course), y + v * steps * torch.sin(course)], -1
-                )
-                traj[j * S : (j + 1) * S, ego, :, :2] = path
-                traj[j * S : (j + 1) * S, ego, :, 2] = course
+            for j, egos in enumerate(ego_rows):
+                for ego in egos:
+                    x, y, course, v = state[j * S, ego].unbind(-1)
+                    path = torch.stack(
+                        [x + v * steps * torch.cos(course), y + v * steps * torch.sin(course)],
+                        -1,
+                    )
+                    traj[j * S : (j + 1) * S, ego, :, :2] = path
+                    traj[j * S : (j + 1) * S, ego, :, 2] = course
             lanes = tuple(rep(batch[k]) for k in ("map", "map_valid", "map_widths"))
             cost += w * plan_cost(
                 traj, rep(pred.valid), rep(batch["extents"]), lanes, rep(exclude)
@@ -570,12 +659,14 @@ class ClosedLoop:
         return cost.argmin(-1)
 
     # ------------------------------------------------------------------ one step
-    def _advance(self, ep: _Episode, action: np.ndarray | None, state: np.ndarray | None) -> None:
+    def _advance(
+        self, ep: _Episode, actions: np.ndarray | None, states: list[np.ndarray | None]
+    ) -> None:
         t, t1 = ep.t, ep.t + 1
         log = ep.factual
-        e = log.ego_index
+        egos = ep.egos
         present = log.valid[:, t1].copy()
-        present[e] = True
+        present[egos] = True
         k = t1 - ep.plan_start
         F = ep.plan_positions.shape[1]
         entered = present & ~ep.valid[:, t]
@@ -605,26 +696,26 @@ class ClosedLoop:
         ep.speeds[i, t1] = ep.speeds[i, t]
         ep.valid[:, t1] = present
         ep.source[:, t1] = np.select([on_plan, replay, coast, idm], [1, 2, 3, 5], 0)
-        ep.source[e, t1] = 4
+        ep.source[egos, t1] = 4
 
-        # The ego: the policy's action through highway-env's bicycle, or a written state.
-        v = ep.ego
-        if state is not None:
-            v.position = np.array(state[:2], dtype=np.float64)
-            v.heading, v.speed = float(state[2]), float(state[3])
-        else:
-            v.act({"acceleration": float(action[0]), "steering": float(action[1])})
-            v.step(log.dt)
-        ep.positions[e, t1] = v.position
-        ep.yaws[e, t1] = v.heading
-        ep.speeds[e, t1] = v.speed
+        # The egos: the policy's action through highway-env's bicycle, or a written state.
+        for k, (e, v, state) in enumerate(zip(egos, ep.vehicles, states, strict=True)):
+            if state is not None:
+                v.position = np.array(state[:2], dtype=np.float64)
+                v.heading, v.speed = float(state[2]), float(state[3])
+            else:
+                v.act({"acceleration": float(actions[k, 0]), "steering": float(actions[k, 1])})
+                v.step(log.dt)
+            ep.positions[e, t1] = v.position
+            ep.yaws[e, t1] = v.heading
+            ep.speeds[e, t1] = v.speed
         ep.t = t1
 
     # ------------------------------------------------------------------ per-step info
-    def _info(self, ep: _Episode, replanned: bool) -> dict:
-        """Step info (plain Python values; see the module docstring)."""
+    def _info(self, ep: _Episode, k: int, replanned: bool) -> dict:
+        """Ego ``k``'s step info (plain Python values; see the module docstring)."""
         t, log = ep.t, ep.factual
-        e = log.ego_index
+        e = ep.egos[k]
         pos, yaw, ok = ep.positions[:, t], ep.yaws[:, t], ep.valid[:, t].copy()
         ok[e] = False
         ext = log.extents
@@ -636,7 +727,8 @@ class ClosedLoop:
         )
         ttc = np.where(ok, ttc, np.inf)
         acc = (ep.speeds[e, t] - ep.speeds[e, t - 1]) / log.dt if t > ep.start else 0.0
-        conflict, adv = ep.conflict, ep.adversary
+        conflict = ep.selections[k].conflict
+        adv = None if conflict is None else conflict.agent
         adv_dist = float(np.linalg.norm(pos[adv] - pos[e])) if adv is not None and ok[adv] else None
         return {
             "step": t - ep.start,
@@ -659,7 +751,7 @@ class ClosedLoop:
             if conflict is None
             else [int(conflict.ego_step) - ep.start, int(conflict.adversary_step) - ep.start],
             "adversary_distance": adv_dist,
-            "fallback": ep.selection.fallback,
+            "fallback": ep.selections[k].fallback,
             "replanned": replanned,
         }
 
@@ -676,6 +768,10 @@ class ClosedLoop:
             "guidance": self.config.guidance,
             "fallback": ep.selection.fallback,
             "replans": ep.replans,
+            "egos": [str(ep.factual.agent_ids[r]) for r in ep.egos],
+            "adversaries": [
+                None if a is None else str(ep.factual.agent_ids[a]) for a in ep.adversaries
+            ],
         }
         return ep.factual.replace(
             positions=ep.positions[:, :n],
@@ -685,9 +781,10 @@ class ClosedLoop:
             metadata=meta,
         )
 
-    def selection(self, b: int) -> Selection:
-        """The adversary selection of episode ``b`` (the latest one with source ``model``)."""
-        return self.episodes[b].selection
+    def selection(self, b: int, k: int = 0) -> Selection:
+        """The adversary selection of ego ``k`` of episode ``b`` (the latest one with source
+        ``model``)."""
+        return self.episodes[b].selections[k]
 
     def motion_source(self, b: int) -> np.ndarray:
         """``[N, T]`` int8: how each agent moved into each step so far (index into
@@ -703,13 +800,17 @@ class ClosedLoop:
 
 # ---------------------------------------------------------------------- helpers
 def _check_rows(
-    x: np.ndarray | None, B: int, width: int, name: str, allow_nan_rows: bool = False
+    x: np.ndarray | None, B: int, E: int, width: int, name: str, allow_nan_rows: bool = False
 ) -> np.ndarray | None:
+    """``x`` as ``[B, E, width]`` float64; ``[B, width]`` is accepted when ``E == 1``."""
     if x is None:
         return None
     x = np.asarray(x, dtype=np.float64)
-    if x.shape != (B, width):
-        raise ValueError(f"{name} must have shape ({B}, {width}), got {x.shape}")
+    if E == 1 and x.shape == (B, width):
+        x = x[:, None]
+    if x.shape != (B, E, width):
+        want = f"({B}, {width}) or ({B}, 1, {width})" if E == 1 else f"({B}, {E}, {width})"
+        raise ValueError(f"{name} must have shape {want}, got {x.shape}")
     bad = ~np.isfinite(x)
     if allow_nan_rows:
         bad &= ~np.isnan(x).all(-1, keepdims=True)
