@@ -1,0 +1,562 @@
+"""``CounterScene-v0``: one external ego against world-model traffic with a guided adversary.
+
+The env is a highway-env ``AbstractEnv``: it takes highway-env's config dict, observation types
+(``Kinematics`` by default, ``OccupancyGrid``, ``TimeToCollision``, ...), action types
+(``ContinuousAction`` by default, ``DiscreteMetaAction``, ...) and renderer. What it replaces is
+the traffic: instead of IDM/MOBIL vehicles, :class:`~counterscene_env.sim.ClosedLoop` moves every
+other agent with the diffusion world model, and steers the causally selected adversary with
+counterfactual guidance. The full spec sheet (spaces, rewards, config keys, info keys) is the
+docstring of :class:`CounterSceneEnv` and ``docs/environment.md``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from highway_env import utils
+from highway_env.envs.common.abstract import AbstractEnv
+from highway_env.envs.common.observation import KinematicObservation
+from highway_env.road.road import Road
+from highway_env.vehicle.controller import ControlledVehicle
+from highway_env.vehicle.kinematics import Vehicle
+
+from counterscene_env import metrics
+from counterscene_env.scene.core import Scene
+from counterscene_env.scene.sources import SceneSource
+from counterscene_env.sim import ClosedLoop, SimConfig
+
+#: Keys of highway-env's base config that mean nothing here (the traffic is the world model).
+_UNUSED_BASE_KEYS = ("other_vehicles_type",)
+#: Reward terms: config key -> what it weights (each term is in [0, 1]).
+REWARD_TERMS = {
+    "collision_reward": "the ego's box overlaps another agent's",
+    "off_road_reward": "the ego's centre is outside the drivable area",
+    "hard_braking_reward": "the ego's longitudinal acceleration is below -3 m/s^2",
+    "high_speed_reward": "the ego's speed, mapped linearly from reward_speed_range to [0, 1]",
+}
+
+_MODELS: dict[str, Any] = {}
+
+
+def load_world_model(name: str):
+    """The world model of a config's ``model`` key, loaded once per process (read-only)."""
+    from counterscene_env.world_model import load_model
+
+    if name not in _MODELS:
+        _MODELS[name] = load_model(name)
+    return _MODELS[name]
+
+
+class CounterSceneEnv(AbstractEnv):
+    """Stress-test a driving policy against world-model traffic with a guided adversary.
+
+    **Description.** Each episode starts from a factual scene (a fresh highway-env recording,
+    or a real log) at 3 s of history. The ego (the scene's ego vehicle) follows your actions
+    through highway-env's vehicle model; every other agent is driven by the diffusion world
+    model, re-planned every ``replan_every`` steps from the simulated history. The agent whose
+    behaviour keeps the scene safe (the causal adversary, by conflict mining on the factual
+    future) has its spatial and temporal safety margins removed by counterfactual guidance
+    during denoising; everyone else reacts through the learned dynamics.
+
+    **Action space.** highway-env's ``config["action"]``. Default ``ContinuousAction``:
+    ``Box(-1, 1, (2,), float32)``, (acceleration, steering) mapped linearly to [-5, 5] m/s^2
+    and [-pi/4, pi/4] rad; values outside [-1, 1] are clipped (highway-env's ``clip``).
+    ``DiscreteMetaAction`` gives ``Discrete(5)`` (or 3 with ``lateral: False``): the ego
+    follows the lanes of its logged route at a target speed. A wrong shape, a NaN or an
+    action outside a discrete space raises ``ValueError``.
+
+    **Observation space.** highway-env's ``config["observation"]``. Default ``Kinematics``:
+    ``Box(-1, 1, (10, 7), float32)``, the ego and its 9 nearest agents, features
+    ``presence, x, y, vx, vy, cos_h, sin_h``, x and y scaled from [-100, 100] m and vx, vy from
+    [-20, 20] m/s to [-1, 1] (clipped), other agents relative to the ego.
+
+    **Rewards.** A weighted sum of named terms, highway-env style (``info["rewards"]`` has
+    each term): ``collision_reward`` (-5) x collision, ``off_road_reward`` (-1) x off road,
+    ``hard_braking_reward`` (-0.5) x hard braking, ``high_speed_reward`` (1) x speed mapped
+    from ``reward_speed_range`` [5, 15] m/s to [0, 1]. Collision and hard braking count if
+    they happen at any simulation step of the policy step.
+
+    **Starting state.** The scene's logged state at 3 s; the scene is drawn from
+    ``scenario`` with the env's seed.
+
+    **Episode end.** Terminated when the ego collides (``terminate_on_collision``) or leaves
+    the drivable area (``terminate_on_off_road``); truncated after ``duration`` seconds or at
+    the end of the log, never both. At the end, ``info["metrics"]`` holds the episode's
+    metric summary (:func:`counterscene_env.metrics.evaluate_scene`).
+
+    **Info** (every step): ``collision``, ``collided_with``, ``hard_braking``,
+    ``ego_acceleration`` [m/s^2], ``ego_speed`` [m/s], ``off_road``, ``min_ttc`` [s],
+    ``adversary``, ``conflict_type``, ``danger_score``, ``tier``, ``conflict_point`` [m],
+    ``arrival_steps``, ``adversary_distance`` [m], ``fallback`` (why there is no adversary),
+    ``replanned``, ``step``, ``time`` [s], ``rewards``, ``speed``, ``crashed``,
+    ``scenario_id``.
+
+    **Arguments.** ``gym.make("CounterScene-v0", config={...}, render_mode=None |
+    "rgb_array" | "human")``; every key of :meth:`default_config` (unknown keys raise).
+
+    **Version history.** v0: first release.
+    """
+
+    metadata: ClassVar[dict] = {"render_modes": ["human", "rgb_array"], "render_fps": 10}
+
+    def __init__(
+        self,
+        config: dict | None = None,
+        render_mode: str | None = None,
+        scenario: str | None = None,
+    ) -> None:
+        """``scenario``: the default scenario (the registered variants set it);
+        ``config["scenario"]`` overrides it."""
+        if scenario is not None:
+            config = {"scenario": scenario, **(config or {})}
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(
+                f"render_mode must be None or one of {self.metadata['render_modes']}, "
+                f"got {render_mode!r}"
+            )
+        self.loop: ClosedLoop | None = None
+        self.scene: Scene | None = None
+        self.egos: list[int] = []
+        self._others: dict[int, Vehicle] = {}
+        self._frames: list[list[dict]] = []
+        self._ended: list[bool] = []
+        self._source: SceneSource | None = None
+        self._reset_options: dict = {}
+        super().__init__(config, render_mode)
+
+    # ------------------------------------------------------------------ configuration
+    @classmethod
+    def default_config(cls) -> dict:
+        config = super().default_config()
+        for key in _UNUSED_BASE_KEYS:
+            config.pop(key)
+        config.update(
+            {
+                # Scenes and traffic
+                "scenario": "intersection",
+                "model": "default",
+                "selector": "causal",
+                "guidance": "full",
+                "selection_source": "log",
+                "strict_gates": True,
+                "num_samples": 4,
+                "replan_every": 5,  # [steps of 0.1 s]
+                "duration": 10.0,  # [s]
+                # The ego: highway-env observation and action types
+                "observation": {
+                    "type": "Kinematics",
+                    "vehicles_count": 10,
+                    "features": ["presence", "x", "y", "vx", "vy", "cos_h", "sin_h"],
+                    "features_range": {
+                        "x": [-100, 100],
+                        "y": [-100, 100],
+                        "vx": [-20, 20],
+                        "vy": [-20, 20],
+                    },
+                    "absolute": False,
+                },
+                "action": {"type": "ContinuousAction"},
+                "controlled_vehicles": 1,
+                "simulation_frequency": 10,  # [Hz], the scenes' 0.1 s step
+                "policy_frequency": 10,  # [Hz]
+                # Rewards and episode end
+                "collision_reward": -5.0,
+                "off_road_reward": -1.0,
+                "hard_braking_reward": -0.5,
+                "high_speed_reward": 1.0,
+                "reward_speed_range": [5.0, 15.0],  # [m/s]
+                "terminate_on_collision": True,
+                "terminate_on_off_road": True,
+                # Rendering
+                "screen_width": 640,  # [px]
+                "screen_height": 640,  # [px]
+                "centering_position": [0.5, 0.5],
+                "scaling": 5.5,  # [px/m]
+                "show_adversary_plan": True,
+            }
+        )
+        return config
+
+    def configure(self, config: Mapping | None) -> None:
+        """Update the config; an unknown key raises and names the valid ones."""
+        if config:
+            valid = set(self.default_config())
+            unknown = sorted(set(config) - valid)
+            if unknown:
+                raise ValueError(
+                    f"unknown CounterScene config keys {unknown}; valid keys: {sorted(valid)}"
+                )
+        candidate = dict(self.config)
+        candidate.update(config or {})
+        self._validate(candidate)
+        super().configure(dict(config or {}))
+        self._source = SceneSource(self.config["scenario"])
+
+    @staticmethod
+    def _validate(config: dict) -> None:
+        sim = 10
+        if config["simulation_frequency"] != sim:
+            raise ValueError(
+                f"simulation_frequency must be {sim} Hz (the scenes' 0.1 s step), "
+                f"got {config['simulation_frequency']}"
+            )
+        pf = config["policy_frequency"]
+        if not isinstance(pf, int) or pf < 1 or sim % pf:
+            raise ValueError(f"policy_frequency must divide {sim} Hz (1, 2, 5, 10), got {pf!r}")
+        for key in ("screen_width", "screen_height"):
+            if config[key] % 16:
+                raise ValueError(
+                    f"{key} must be a multiple of 16 px (video codecs), got {config[key]}"
+                )
+        n = config["controlled_vehicles"]
+        if not isinstance(n, int) or n < 1:
+            raise ValueError(f"controlled_vehicles must be an int >= 1, got {n!r}")
+        lo, hi = config["reward_speed_range"]
+        if not hi > lo:
+            raise ValueError(f"reward_speed_range must be [low, high] m/s, got {[lo, hi]}")
+        SimConfig.from_mapping(_sim_settings(config))  # selector, guidance, ... (raises)
+
+    def define_spaces(self) -> None:
+        """highway-env's spaces, with the ``Kinematics`` box bounded to [-1, 1] when every
+        feature is normalised and clipped there (highway-env declares (-inf, inf))."""
+        super().define_spaces()
+        if isinstance(self.observation_space, spaces.Tuple):
+            self.observation_space = spaces.Tuple(
+                [
+                    _bounded(space, t)
+                    for space, t in zip(
+                        self.observation_space.spaces,
+                        self.observation_type.agents_observation_types,
+                        strict=True,
+                    )
+                ]
+            )
+        else:
+            self.observation_space = _bounded(self.observation_space, self.observation_type)
+
+    @property
+    def sim_config(self) -> SimConfig:
+        return SimConfig.from_mapping(_sim_settings(self.config))
+
+    # ------------------------------------------------------------------ episode
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict]:
+        """Start an episode. ``options``: ``{"config": {...}}`` (as highway-env) and/or
+        ``{"scene": Scene}`` to run a given scene instead of drawing one."""
+        options = dict(options or {})  # other keys are ignored (PettingZoo's API test sends some)
+        gym.Env.reset(self, seed=seed)
+        if "config" in options:
+            self.configure(options["config"])
+        self._reset_options = options
+        self.update_metadata()
+        self.define_spaces()  # first: the ego's vehicle class depends on the action type
+        self.time = self.steps = 0
+        self.done = False
+        self._reset()
+        self.define_spaces()  # again: observation and action types bound to the new egos
+        obs = self.observation_type.observe()
+        info = self._info(obs, None)
+        if self.render_mode == "human":
+            self.render()
+        return obs, info
+
+    def _reset(self) -> None:
+        config = self.config
+        scene = self._reset_options.get("scene")
+        if scene is None:
+            scene = self._source.draw(self.np_random)
+        elif not isinstance(scene, Scene):
+            raise TypeError(f"options['scene'] must be a Scene, got {type(scene).__name__}")
+        egos = pick_egos(scene, config["controlled_vehicles"])
+        model = load_world_model(config["model"])
+        sim = self.sim_config
+        if self.loop is None or self.loop.model is not model or self.loop.config != sim:
+            self.loop = ClosedLoop(model, sim)
+        self.loop.reset([scene], [int(self.np_random.integers(2**31))], [egos])
+        self.scene, self.egos = scene, egos
+        self._frames = [[dict(i) for i in self.loop.infos(0)]]
+        self._ended = [False] * len(egos)
+
+        t = scene.current_index
+        self.road = Road(
+            network=scene.road.network,
+            vehicles=[],
+            np_random=self.np_random,
+            record_history=config["show_trajectories"],
+        )
+        self.road.neighbour_vehicles_connected_lanes = config["neighbour_vehicles_connected_lanes"]
+        vehicle_class = self.action_type.vehicle_class
+        self.controlled_vehicles = []
+        for e in egos:
+            v = vehicle_class(
+                self.road,
+                scene.positions[e, t].copy(),
+                float(scene.yaws[e, t]),
+                float(scene.speeds[e, t]),
+            )
+            v.LENGTH, v.WIDTH = (float(x) for x in scene.extents[e])
+            if isinstance(v, ControlledVehicle):  # lane-following action types: the logged route
+                last = np.flatnonzero(scene.valid[e])[-1]
+                goal = scene.road.network.get_closest_lane_index(
+                    scene.positions[e, last], scene.yaws[e, last]
+                )
+                v.plan_route_to(goal[1])
+            self.controlled_vehicles.append(v)
+        self._others = {}
+        for i in range(scene.num_agents):
+            if i in egos:
+                continue
+            v = Vehicle(self.road, scene.positions[i, t].copy(), float(scene.yaws[i, t]), 0.0)
+            v.LENGTH, v.WIDTH = (float(x) for x in scene.extents[i])
+            self._others[i] = v
+        self._sync_road()
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
+        if self.loop is None:
+            raise RuntimeError("call reset() before step()")
+        if self.loop.done.all() or all(self._ended):
+            raise RuntimeError("the episode is over (terminated or truncated): call reset()")
+        check_action(self.action_space, action)
+        return super().step(action)
+
+    def _simulate(self, action: Any = None) -> None:
+        """``simulation_frequency / policy_frequency`` closed-loop steps with one action."""
+        if action is not None and not self.config["manual_control"]:
+            self.action_type.act(_as_action(action))
+        frames = self.config["simulation_frequency"] // self.config["policy_frequency"]
+        self._frames = []
+        dt = 1 / self.config["simulation_frequency"]
+        for frame in range(frames):
+            states = np.empty((1, len(self.egos), 4))
+            for k, v in enumerate(self.controlled_vehicles):
+                v.act()  # lane-following vehicles recompute their low-level controls
+                v.step(dt)
+                states[0, k] = (*v.position, v.heading, v.speed)
+            self.loop.step(ego_states=states)
+            self._frames.append([dict(i) for i in self.loop.infos(0)])
+            self._sync_road()
+            self.steps += 1
+            if self.loop.done.all() or self._any_new_end():
+                break
+            if frame < frames - 1:
+                self._automatic_rendering()
+        self.enable_auto_render = False
+
+    def _sync_road(self) -> None:
+        """Write the closed loop's state into highway-env's road (for observations and the
+        viewer): the egos and every agent present now."""
+        state = self.loop.state(0)
+        present = []
+        adversaries = {a for a in self.loop.episodes[0].adversaries if a is not None}
+        for i, v in self._others.items():
+            if not state.valid[i]:
+                continue
+            v.position = np.array(state.positions[i], dtype=np.float64)
+            v.heading, v.speed = float(state.yaws[i]), float(state.speeds[i])
+            v.color = ADVERSARY_COLOR if i in adversaries else TRAFFIC_COLOR
+            present.append(v)
+        for k, v in enumerate(self.controlled_vehicles):
+            v.crashed = v.crashed or self._frames[-1][k]["collision"]
+        self.road.vehicles = [*self.controlled_vehicles, *present]
+
+    def _any_new_end(self) -> bool:
+        return any(self._ego_ended(k) for k in range(len(self.egos)) if not self._ended[k])
+
+    # ------------------------------------------------------------------ per ego
+    def ego_info(self, k: int = 0) -> dict:
+        """Ego ``k``'s info over the last policy step (module docstring)."""
+        frames = [f[k] for f in self._frames]
+        info = dict(frames[-1])
+        for key in ("collision", "hard_braking", "off_road"):
+            info[key] = any(f[key] for f in frames)
+        hits = [f["collided_with"] for f in frames if f["collided_with"] is not None]
+        info["collided_with"] = hits[0] if hits else None
+        info["min_ttc"] = min(f["min_ttc"] for f in frames)
+        info["scenario_id"] = self.scene.scenario_id
+        return info
+
+    def ego_rewards(self, k: int = 0) -> dict[str, float]:
+        info = self.ego_info(k)
+        speed = utils.lmap(info["ego_speed"], self.config["reward_speed_range"], [0, 1])
+        return {
+            "collision_reward": float(info["collision"]),
+            "off_road_reward": float(info["off_road"]),
+            "hard_braking_reward": float(info["hard_braking"]),
+            "high_speed_reward": float(np.clip(speed, 0.0, 1.0)),
+        }
+
+    def ego_reward(self, k: int = 0) -> float:
+        return float(sum(self.config[name] * r for name, r in self.ego_rewards(k).items()))
+
+    def _ego_ended(self, k: int) -> bool:
+        info = self.ego_info(k)
+        c = self.config
+        return bool(
+            (c["terminate_on_collision"] and info["collision"])
+            or (c["terminate_on_off_road"] and info["off_road"])
+        )
+
+    def ego_terminated(self, k: int = 0) -> bool:
+        """Ego ``k`` collided or left the road (as configured) in the last policy step."""
+        if self._ended[k]:
+            return True
+        ended = self._ego_ended(k)
+        if ended:
+            self._ended[k] = True
+            self.controlled_vehicles[k].crashed = True  # it stops where it is
+        return ended
+
+    def ego_truncated(self, k: int = 0) -> bool:
+        return bool(self.loop.done.all()) and not self._ended[k] and not self._ego_ended(k)
+
+    def episode_metrics(self, k: int = 0) -> dict:
+        """Ego ``k``'s metric summary of the episode so far (metrics.evaluate_scene)."""
+        sim = self.loop.scene(0)
+        e = self.egos[k]
+        if e != sim.ego_index:
+            sim = sim.replace(ego_index=e)
+        factual = self.scene.time_slice(0, sim.num_steps).replace(ego_index=e)
+        adversary = self.loop.selection(0, k).conflict
+        return metrics.evaluate_scene(
+            sim, factual, adversary=None if adversary is None else adversary.agent
+        )
+
+    # ------------------------------------------------------------------ highway-env hooks
+    def _rewards(self, action: Any) -> dict[str, float]:
+        return self.ego_rewards(0)
+
+    def _reward(self, action: Any) -> float:
+        return self.ego_reward(0)
+
+    def _is_terminated(self) -> bool:
+        return any([self.ego_terminated(k) for k in range(len(self.egos))])
+
+    def _is_truncated(self) -> bool:
+        return bool(self.loop.done.all()) and not any(self._ended)
+
+    def _info(self, obs: Any, action: Any = None) -> dict:
+        info = self.ego_info(0)
+        info["rewards"] = self.ego_rewards(0)
+        info["speed"] = float(self.vehicle.speed)
+        info["crashed"] = bool(self.vehicle.crashed)
+        if self.steps and (any(self._ended) or self.loop.done.all()):
+            info["metrics"] = self.episode_metrics(0)
+        return info
+
+    # ------------------------------------------------------------------ rendering
+    def render(self) -> np.ndarray | None:
+        if self.render_mode is None:
+            gym.logger.warn(
+                'render() without a render_mode: use gym.make("CounterScene-v0", '
+                'render_mode="rgb_array")'
+            )
+            return None
+        from counterscene_env.render import CounterSceneViewer
+
+        if self.viewer is None:
+            self.viewer = CounterSceneViewer(self)
+        self.enable_auto_render = True
+        self.viewer.display()
+        if not self.viewer.offscreen:
+            self.viewer.handle_events()
+        if self.render_mode == "rgb_array":
+            return self.viewer.get_image()
+        return None
+
+    def close(self) -> None:
+        super().close()
+
+
+#: Vehicle colours of the viewer (RGB): the adversary, other world-model traffic.
+ADVERSARY_COLOR = (200, 40, 220)
+TRAFFIC_COLOR = (100, 200, 255)
+
+
+def _sim_settings(config: Mapping) -> dict:
+    return {
+        "duration": config["duration"],
+        "replan_every": config["replan_every"],
+        "num_samples": config["num_samples"],
+        "selector": config["selector"],
+        "selection_source": config["selection_source"],
+        "strict_gates": config["strict_gates"],
+        "guidance": config["guidance"],
+    }
+
+
+def check_action(space: spaces.Space, action: Any, who: str = "action") -> None:
+    """Raise ValueError on an action that does not fit ``space``: a wrong shape, NaN or inf,
+    a value outside a discrete space (out-of-range Box values are clipped by highway-env)."""
+    if isinstance(space, spaces.Tuple):
+        if not isinstance(action, tuple) or len(action) != len(space.spaces):
+            raise ValueError(f"{who} must be a tuple of {len(space.spaces)} actions")
+        for k, (sub, a) in enumerate(zip(space.spaces, action, strict=True)):
+            check_action(sub, a, f"{who}[{k}]")
+    elif isinstance(space, spaces.Box):
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != space.shape:
+            raise ValueError(f"{who} must have shape {space.shape}, got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"{who} contains NaN or inf: {a.tolist()}")
+    else:
+        try:
+            value = np.asarray(action).item() if np.ndim(action) == 0 else action
+            ok = space.contains(value)
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(f"{who} {action!r} is not in the action space {space}")
+
+
+#: Kinematics features that normalisation with clipping keeps in [-1, 1].
+_UNIT_FEATURES = {"presence", "x", "y", "vx", "vy", "cos_h", "sin_h", "cos_d", "sin_d"}
+
+
+def _bounded(space: spaces.Space, obs_type: Any) -> spaces.Space:
+    if (
+        isinstance(obs_type, KinematicObservation)
+        and obs_type.normalize
+        and obs_type.clip
+        and set(obs_type.features) <= _UNIT_FEATURES
+        and isinstance(space, spaces.Box)
+    ):
+        return spaces.Box(-1.0, 1.0, space.shape, space.dtype)
+    return space
+
+
+def _as_action(action: Any) -> Any:
+    """highway-env's action types index dicts with ints and use arrays for boxes."""
+    if isinstance(action, np.ndarray) and action.ndim == 0:
+        return int(action)
+    if isinstance(action, np.integer):
+        return int(action)
+    return action
+
+
+def pick_egos(scene: Scene, n: int) -> list[int]:
+    """``n`` ego rows of a scene: its own ego, then the vehicles nearest to it that are
+    present now and for the longest part of the log.
+
+    Raises:
+        ValueError: the scene has fewer than ``n`` such vehicles.
+    """
+    e, t = scene.ego_index, scene.current_index
+    if n == 1:
+        return [e]
+    ok = scene.valid[:, t] & (scene.agent_types == "vehicle")
+    ok[e] = False
+    rows = np.flatnonzero(ok)
+    if rows.size < n - 1:
+        raise ValueError(
+            f"scene {scene.scenario_id!r} has {rows.size + 1} vehicles present at the start, "
+            f"fewer than the {n} egos asked for"
+        )
+    # Prefer vehicles that stay in the log (an ego whose log ends is still simulated, but a
+    # short-lived one makes a poor policy target), then the nearest.
+    stays = scene.valid[rows, t:].mean(-1)
+    dist = np.linalg.norm(scene.positions[rows, t] - scene.positions[e, t], axis=-1)
+    order = np.lexsort((dist, -np.round(stays, 1)))
+    return [int(e), *(int(r) for r in rows[order[: n - 1]])]

@@ -1,0 +1,132 @@
+"""Bird's-eye frames of a CounterScene episode, and video export.
+
+Frames are drawn by highway-env's own viewer (``EnvViewer``: the road network, every vehicle as
+an oriented box) with the CounterScene layer on top: the egos in green (red once crashed), the
+adversary in purple, other world-model traffic in light blue, the adversary's current planned
+path as a purple polyline, and the conflict point as a red ring. ``render_mode="rgb_array"``
+returns ``[H, W, 3]`` uint8 (``screen_height`` x ``screen_width``, multiples of 16).
+
+:func:`save_video` writes frames to mp4 or gif with imageio (the ``video`` extra).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pygame
+from highway_env.envs.common.graphics import EnvViewer
+from highway_env.vehicle.graphics import VehicleGraphics
+
+if TYPE_CHECKING:
+    from counterscene_env.envs.single_agent import CounterSceneEnv
+
+EGO_COLOR = VehicleGraphics.EGO_COLOR
+CRASHED_COLOR = VehicleGraphics.RED
+PLAN_COLOR = (200, 40, 220)
+CONFLICT_COLOR = (230, 30, 30)
+
+
+class CounterSceneViewer(EnvViewer):
+    """highway-env's viewer plus the adversary's plan and the conflict point.
+
+    highway-env's viewer draws nothing when ``SDL_VIDEODRIVER=dummy`` (its headless switch);
+    off-screen ``rgb_array`` rendering needs no display, so it stays enabled here.
+    """
+
+    def __init__(self, env: CounterSceneEnv) -> None:
+        super().__init__(env)
+        if self.offscreen:
+            self.enabled = True
+
+    def window_position(self) -> np.ndarray:
+        return np.asarray(self.env.vehicle.position, dtype=float)
+
+    def display(self) -> None:
+        if not self.enabled:
+            return
+        env = self.env
+        for v in env.controlled_vehicles:
+            v.color = CRASHED_COLOR if v.crashed else EGO_COLOR
+        super().display()
+        if env.config["show_adversary_plan"]:
+            self._draw_adversaries()
+            if not self.offscreen:
+                self.screen.blit(self.sim_surface, (0, 0))
+                pygame.display.flip()
+
+    def _draw_adversaries(self) -> None:
+        env, surface = self.env, self.sim_surface
+        loop = env.loop
+        ep = loop.episodes[0]
+        width = max(2, surface.pix(0.3))
+        for k in range(len(env.egos)):
+            conflict = loop.selection(0, k).conflict
+            if conflict is None:
+                continue
+            plan = loop.plan(0, conflict.agent)
+            if plan is not None:
+                # The rest of the current plan, from the adversary's next step on.
+                k0 = max(0, ep.t + 1 - int(ep.plan_start[conflict.agent]))
+                points = [surface.vec2pix(p) for p in plan[k0:]]
+                if len(points) > 1:
+                    pygame.draw.lines(surface, PLAN_COLOR, False, points, width)
+            centre = surface.vec2pix(conflict.conflict_point)
+            radius = max(4, surface.pix(1.2))
+            pygame.draw.circle(surface, CONFLICT_COLOR, centre, radius, width)
+            d = int(radius * 0.7)
+            pygame.draw.line(
+                surface,
+                CONFLICT_COLOR,
+                (centre[0] - d, centre[1] - d),
+                (centre[0] + d, centre[1] + d),
+                width,
+            )
+            pygame.draw.line(
+                surface,
+                CONFLICT_COLOR,
+                (centre[0] - d, centre[1] + d),
+                (centre[0] + d, centre[1] - d),
+                width,
+            )
+
+
+def save_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: int = 10) -> Path:
+    """Write ``[H, W, 3]`` uint8 frames to ``path`` (``.mp4`` or ``.gif``); returns the path.
+
+    Raises:
+        ImportError: imageio (and, for mp4, imageio-ffmpeg) is not installed; install the
+            extra with ``pip install "counterscene-env[video]"``.
+        ValueError: no frames, frames of different sizes, or another suffix.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".mp4", ".gif"):
+        raise ValueError(f"save_video writes .mp4 or .gif, got {path.name!r}")
+    if not len(frames):
+        raise ValueError("save_video needs at least one frame")
+    shapes = {np.shape(f) for f in frames}
+    if len(shapes) != 1 or len(next(iter(shapes))) != 3 or next(iter(shapes))[2] != 3:
+        raise ValueError(f"frames must all be [H, W, 3] of one size, got shapes {sorted(shapes)}")
+    try:
+        import imageio.v3 as iio
+    except ImportError as exc:
+        raise ImportError(
+            'save_video needs imageio: pip install "counterscene-env[video]"'
+        ) from exc
+    stack = np.stack([np.asarray(f, dtype=np.uint8) for f in frames])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if suffix == ".gif":
+        iio.imwrite(path, stack, duration=1000 / fps, loop=0)
+    else:
+        try:
+            import imageio_ffmpeg  # noqa: F401
+        except ImportError as exc:
+            raise ImportError(
+                'save_video writes mp4 with imageio-ffmpeg: pip install "counterscene-env[video]"'
+            ) from exc
+        iio.imwrite(path, stack, fps=fps, codec="libx264", macro_block_size=16)
+    return path
