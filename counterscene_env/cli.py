@@ -7,6 +7,7 @@ Subcommands import what they need when they run, so ``counterscene --help`` is i
 - ``train``: train a world model on dataset directories (resumable).
 - ``evaluate-model``: open-loop ADE/FDE/off-road of a world model vs constant velocity.
 - ``bench``: latency and FLOPs of a world model's sampling call.
+- ``bench-env``: steps per second of ``CounterScene-v0``.
 - ``stress``: stress-test an ego planner against guided world-model traffic (paper's table).
 """
 
@@ -166,6 +167,28 @@ def _parser() -> argparse.ArgumentParser:
     be.add_argument("--json", action="store_true", help="print one JSON object")
     be.set_defaults(func=_cmd_bench)
 
+    bv = sub.add_parser(
+        "bench-env",
+        help="steps per second of CounterScene-v0",
+        description=(
+            "Step CounterScene-v0 --steps times with seeded random actions (resetting at "
+            "episode ends) and report steps per second, with and without resets."
+        ),
+    )
+    bv.add_argument("--scenario", default="intersection", help="scenario (default intersection)")
+    bv.add_argument("--steps", type=int, default=500, help="env steps (default 500)")
+    bv.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    bv.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
+    bv.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="other config keys (JSON values), e.g. policy_frequency=2 guidance=none",
+    )
+    bv.add_argument("--json", action="store_true", help="print one JSON object")
+    bv.set_defaults(func=_cmd_bench_env)
+
     st = sub.add_parser(
         "stress",
         help="stress-test an ego planner against guided world-model traffic",
@@ -186,7 +209,17 @@ def _parser() -> argparse.ArgumentParser:
     st.add_argument(
         "--planner",
         default="idm",
-        help="ego planner: idm, idm_yield, constant_velocity, log (default idm)",
+        help=(
+            "ego planner: idm, idm_yield, constant_velocity, log, or sb3:PATH.zip (a "
+            "Stable-Baselines3 policy, run through CounterScene-v0) (default idm)"
+        ),
+    )
+    st.add_argument(
+        "--env-config",
+        help=(
+            "sb3 planners: JSON object (or a .json file) of CounterScene-v0 config keys, e.g. "
+            "the policy's observation and action; default: PATH.env.json next to the zip"
+        ),
     )
     st.add_argument(
         "--selector",
@@ -233,9 +266,40 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _cmd_bench_env(args: argparse.Namespace) -> int:
+    from counterscene_env.envs.bench import bench_env
+
+    config = {"scenario": args.scenario, **_parse_overrides(args.set)}
+    result = bench_env(config, steps=args.steps, seed=args.seed, threads=args.threads)
+    if args.json:
+        print(json.dumps(json_safe(result)))
+        return 0
+    c = result["config"]
+    print(
+        f"CounterScene-v0 {c['scenario']}, guidance {c['guidance']}, {c['num_samples']} samples, "
+        f"policy {c['policy_frequency']} Hz, {result['threads']} torch threads"
+    )
+    print(
+        f"  {result['steps_per_second']:.1f} steps/s over {result['steps']} steps and "
+        f"{result['episodes']} episodes (resets included)"
+    )
+    print(
+        f"  step {1000 * result['step_seconds_mean']:.1f} ms mean ({100 * result['replan_share']:.0f} % "
+        f"world-model replans), reset {result['reset_seconds_mean']:.2f} s mean"
+    )
+    return 0
+
+
 def _cmd_stress(args: argparse.Namespace) -> int:
     from counterscene_env.sim import SimConfig
-    from counterscene_env.stress import StressConfig, run_episodes, summarize, write_outputs
+    from counterscene_env.stress import (
+        SB3_PREFIX,
+        StressConfig,
+        run_episodes,
+        run_policy_episodes,
+        summarize,
+        write_outputs,
+    )
 
     sim = SimConfig(
         duration=args.duration,
@@ -254,8 +318,19 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         sim=sim,
         batch=args.batch,
     )
-    model = _load_model(args.model)
-    records = run_episodes(model, config, progress=not args.quiet)
+    if args.planner.startswith(SB3_PREFIX):
+        env_config = None
+        if args.env_config:
+            text = args.env_config
+            if not text.lstrip().startswith("{"):
+                text = Path(text).read_text()
+            env_config = json.loads(text)
+        records = run_policy_episodes(config, args.model, env_config, progress=not args.quiet)
+    else:
+        if args.env_config:
+            raise ValueError("--env-config applies to sb3:PATH.zip planners only")
+        model = _load_model(args.model)
+        records = run_episodes(model, config, progress=not args.quiet)
     summary = summarize(records, config)
     if args.out:
         write_outputs(args.out, summary, records)

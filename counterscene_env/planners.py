@@ -12,10 +12,16 @@ state, ``next_state(state) -> [4]`` (x m, y m, yaw rad, speed m/s), written as i
   intersection priority rule (``RegulatedRoad``): it gives way to crossing traffic.
 - :class:`ConstantVelocityPlanner`: zero acceleration and steering.
 - :class:`LogReplayPlanner`: the factual ego, non-reactive (the paper's protocol).
+- :class:`SB3Policy`: any Stable-Baselines3 policy (``sb3:PATH.zip``), loaded without
+  unpickling; it acts on highway-env observations, so it runs through ``CounterScene-v0``.
 """
 
 from __future__ import annotations
 
+import json
+import os
+import zipfile
+from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
@@ -186,6 +192,145 @@ class IDMPlanner:
         Vehicle.act(v, {"acceleration": acc, "steering": steer})
         v.step(self.dt)
         return np.array([*v.position, v.heading, v.speed])
+
+
+class SB3Policy:
+    """A Stable-Baselines3 policy from its ``.zip``, for prediction, loaded without unpickling.
+
+    SB3's own ``load`` unpickles (cloudpickle) the spaces, schedules and policy class stored in
+    the zip. Here the policy class is imported by name (only from ``stable_baselines3``), its
+    keyword arguments are read from the zip's JSON, and the weights with
+    ``torch.load(weights_only=True)``. The spaces are the env's, after checking that they
+    match the ones recorded in the zip (type, shape, dtype, number of actions).
+
+    Unlike the planners above it acts on highway-env observations, so ``counterscene stress
+    --planner sb3:PATH.zip`` runs it through ``CounterScene-v0``. The observation and action
+    config it needs come from ``PATH.env.json`` next to the zip when there is one (the recipes
+    in ``agents/`` write it), else from the env's defaults.
+
+    Args:
+        path: the ``.zip`` written by ``model.save``.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: not an SB3 zip, a policy class outside ``stable_baselines3``, or policy
+            keyword arguments that are Python objects (they would need unpickling).
+    """
+
+    name = "sb3"
+    replays_log = False
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"{self.path}: no such SB3 policy file")
+        try:
+            with zipfile.ZipFile(self.path) as z:
+                self.data = json.loads(z.read("data"))
+                self._weights = z.read("policy.pth")
+        except (zipfile.BadZipFile, KeyError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{self.path}: not a Stable-Baselines3 model zip ({exc})") from None
+        self.policy_class = _sb3_policy_class(self.data, self.path)
+        kwargs = self.data.get("policy_kwargs", {})
+        if not isinstance(kwargs, dict) or ":serialized:" in kwargs:
+            raise ValueError(
+                f"{self.path}: its policy_kwargs hold Python objects, which cannot be loaded "
+                "without unpickling; retrain with plain policy_kwargs (net_arch lists, numbers)"
+            )
+        self.policy_kwargs = kwargs
+        sidecar = self.path.with_name(self.path.name.removesuffix(".zip") + ".env.json")
+        self.env_config = json.loads(sidecar.read_text()) if sidecar.is_file() else {}
+        self.policy = None
+
+    def describe_spaces(self) -> tuple[str, str]:
+        """The observation and action spaces recorded in the zip, as text."""
+        return _describe(self.data["observation_space"]), _describe(self.data["action_space"])
+
+    def bind(self, observation_space, action_space) -> None:
+        """Build the policy on the env's spaces and load its weights.
+
+        Raises:
+            ValueError: the spaces differ from the ones the policy was trained on (the
+                message names both), or the weights do not fit.
+        """
+        import inspect
+        import io
+
+        import torch
+
+        mine = (
+            _space_signature(self.data["observation_space"]),
+            _space_signature(self.data["action_space"]),
+        )
+        theirs = (_env_signature(observation_space), _env_signature(action_space))
+        if mine != theirs:
+            obs, act = self.describe_spaces()
+            raise ValueError(
+                f"{self.path.name} was trained on observations {obs} and actions {act}, but "
+                f"the env gives {observation_space} and {action_space}: configure the env's "
+                "observation and action like the policy's training env (a PATH.env.json "
+                "sidecar, or --env-config)"
+            )
+        kwargs = dict(self.policy_kwargs)
+        if (
+            self.data.get("use_sde")
+            and "use_sde" in inspect.signature(self.policy_class).parameters
+        ):
+            kwargs["use_sde"] = True
+        policy = self.policy_class(observation_space, action_space, lambda _: 0.0, **kwargs)
+        state = torch.load(io.BytesIO(self._weights), map_location="cpu", weights_only=True)
+        try:
+            policy.load_state_dict(state)
+        except RuntimeError as exc:
+            raise ValueError(
+                f"{self.path.name}: the weights do not fit the policy: {exc}"
+            ) from None
+        policy.set_training_mode(False)
+        self.policy = policy
+
+    def predict(self, observation: np.ndarray):
+        """The deterministic action for one observation."""
+        if self.policy is None:
+            raise RuntimeError("call bind(observation_space, action_space) first")
+        action, _ = self.policy.predict(observation, deterministic=True)
+        return action
+
+
+def _sb3_policy_class(data: dict, path: Path):
+    import importlib
+    import re
+
+    cls = data.get("policy_class", {})
+    module = cls.get("__module__", "") if isinstance(cls, dict) else ""
+    init = cls.get("__init__", "") if isinstance(cls, dict) else ""
+    match = re.match(r"<function (\w+)\.__init__", init)
+    if not module.startswith("stable_baselines3.") or match is None:
+        raise ValueError(
+            f"{path}: policy class {module or '?'} is not one of Stable-Baselines3's; only "
+            "those are loaded (by name, without unpickling)"
+        )
+    try:
+        return getattr(importlib.import_module(module), match.group(1))
+    except (ImportError, AttributeError) as exc:
+        raise ValueError(f"{path}: cannot find policy class {module}.{match.group(1)}") from exc
+
+
+def _space_signature(entry: dict) -> tuple:
+    kind = str(entry.get(":type:", "")).rsplit(".", 1)[-1].rstrip("'>")
+    shape = entry.get("_shape", [])
+    shape = tuple(json.loads(shape) if isinstance(shape, str) else shape)
+    n = int(entry["n"]) if "n" in entry else None
+    return kind, shape, str(entry.get("dtype")), n
+
+
+def _env_signature(space) -> tuple:
+    n = int(space.n) if hasattr(space, "n") else None
+    return type(space).__name__, tuple(space.shape or ()), str(space.dtype), n
+
+
+def _describe(entry: dict) -> str:
+    kind, shape, dtype, n = _space_signature(entry)
+    return f"{kind}(n={n})" if n is not None else f"{kind}{shape} {dtype}"
 
 
 PLANNERS = {

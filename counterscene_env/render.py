@@ -38,6 +38,9 @@ class CounterSceneViewer(EnvViewer):
     """
 
     def __init__(self, env: CounterSceneEnv) -> None:
+        if env.config["offscreen_rendering"] and not os.environ.get("DISPLAY"):
+            # No window is opened off-screen; without a display SDL would complain.
+            os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
         super().__init__(env)
         if self.offscreen:
             self.enabled = True
@@ -75,7 +78,7 @@ class CounterSceneViewer(EnvViewer):
                 if len(points) > 1:
                     pygame.draw.lines(surface, PLAN_COLOR, False, points, width)
             centre = surface.vec2pix(conflict.conflict_point)
-            radius = max(4, surface.pix(1.2))
+            radius = max(6, surface.pix(2.0))
             pygame.draw.circle(surface, CONFLICT_COLOR, centre, radius, width)
             d = int(radius * 0.7)
             pygame.draw.line(

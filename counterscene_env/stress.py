@@ -35,6 +35,7 @@ from counterscene_env.world_model.model import WorldModel
 
 GENERATED = ("highway", "merge", "intersection", "roundabout")
 SCENARIONET_PREFIX = "scenarionet:"
+SB3_PREFIX = "sb3:"
 
 
 @dataclass(frozen=True)
@@ -46,7 +47,9 @@ class StressConfig:
             ``scenarionet:DIR``, or a dataset directory (``counterscene generate --out``).
         episodes: number of episodes.
         seed: seed of episode 0 (episode i: ``seed + i``).
-        planner: ego planner name (``idm``, ``constant_velocity``, ``log``).
+        planner: ego planner name (``idm``, ``idm_yield``, ``constant_velocity``, ``log``),
+            or ``sb3:PATH.zip``: a Stable-Baselines3 policy, run through ``CounterScene-v0``
+            (:func:`run_policy_episodes`).
         sim: closed-loop settings (selector, guidance, samples, ...).
         batch: episodes advanced together (one world-model call per replan).
     """
@@ -69,7 +72,12 @@ class StressConfig:
                 f"unknown scenario {self.scenario!r}: not one of {list(GENERATED)}, and no "
                 f"such path (use '{SCENARIONET_PREFIX}DIR' or a dataset directory)"
             )
-        make_planner(self.planner)  # raises on an unknown name
+        if self.planner.startswith(SB3_PREFIX):
+            path = Path(self.planner.removeprefix(SB3_PREFIX))
+            if not path.is_file():
+                raise ValueError(f"planner {self.planner!r}: no such SB3 policy file {path}")
+        else:
+            make_planner(self.planner)  # raises on an unknown name
 
     def to_dict(self) -> dict:
         out = dataclasses.asdict(self)
@@ -162,25 +170,86 @@ def run_batch(
                 actions[b] = planner.act(state)
         loop.step(actions, states)
     wall = time.perf_counter() - start
+    return [_record(loop, b, scene, seeds[b], wall / B) for b, scene in enumerate(scenes)]
 
-    records = []
-    for b, scene in enumerate(scenes):
-        ep = loop.episodes[b]
-        sim = loop.scene(b)
-        factual = scene.time_slice(0, sim.num_steps)
-        rec = metrics.evaluate_scene(sim, factual, adversary=ep.adversary)
-        conflict = ep.conflict
-        rec.update(
-            seed=int(seeds[b]),
-            adversary_type=None if conflict is None else conflict.subtype,
-            adversary_tier=None if conflict is None else conflict.tier,
-            danger_score=None if conflict is None else float(conflict.score),
-            fallback=ep.selection.fallback,
-            replans=ep.replans,
-            replan_seconds=ep.replan_seconds,
-            seconds=wall / B,
-        )
-        records.append(rec)
+
+def _record(loop: ClosedLoop, b: int, scene: Scene, seed: int, seconds: float) -> dict:
+    """Episode ``b``'s metrics (:func:`metrics.evaluate_scene`), selection and timing."""
+    ep = loop.episodes[b]
+    sim = loop.scene(b)
+    factual = scene.time_slice(0, sim.num_steps)
+    rec = metrics.evaluate_scene(sim, factual, adversary=ep.adversary)
+    conflict = ep.conflict
+    rec.update(
+        seed=int(seed),
+        adversary_type=None if conflict is None else conflict.subtype,
+        adversary_tier=None if conflict is None else conflict.tier,
+        danger_score=None if conflict is None else float(conflict.score),
+        fallback=ep.selection.fallback,
+        replans=ep.replans,
+        replan_seconds=ep.replan_seconds,
+        seconds=seconds,
+    )
+    return rec
+
+
+def run_policy_episodes(
+    config: StressConfig,
+    model: str = "default",
+    env_config: dict | None = None,
+    progress: bool = True,
+) -> list[dict]:
+    """Run every episode of an ``sb3:PATH.zip`` planner through ``CounterScene-v0``.
+
+    The policy sees the env's highway-env observations and acts through its action type.
+    Episode i runs the same scene and closed-loop seed as :func:`run_episodes` would
+    (``reset(options={"scene": ..., "episode_seed": seed + i})``) and runs to its end, as the
+    other planners' do (collisions and leaving the road do not end it). The env's
+    observation and action config come from ``env_config``, else from the policy's
+    ``PATH.env.json`` sidecar, else the env's defaults.
+
+    Raises:
+        ValueError: the policy's spaces do not match the env's (the message names both).
+    """
+    from tqdm.auto import tqdm
+
+    from counterscene_env.envs.single_agent import CounterSceneEnv
+    from counterscene_env.planners import SB3Policy
+
+    policy = SB3Policy(config.planner.removeprefix(SB3_PREFIX))
+    sim = config.sim
+    settings = {
+        **policy.env_config,
+        **(env_config or {}),
+        "scenario": config.scenario if config.scenario in GENERATED else "merge",
+        "model": model,
+        "duration": sim.duration,
+        "replan_every": sim.replan_every,
+        "num_samples": sim.num_samples,
+        "selector": sim.selector,
+        "selection_source": sim.selection_source,
+        "strict_gates": sim.strict_gates,
+        "guidance": sim.guidance,
+        "terminate_on_collision": False,
+        "terminate_on_off_road": False,
+    }
+    env = CounterSceneEnv(config=settings)
+    policy.bind(env.observation_space, env.action_space)
+    records: list[dict] = []
+    bar = tqdm(total=config.episodes, desc="stress", unit="ep", disable=not progress)
+    for i, scene in enumerate(scenes_for(config.scenario, config.episodes, config.seed)):
+        seed = config.seed + i
+        start = time.perf_counter()
+        obs, _ = env.reset(seed=seed, options={"scene": scene, "episode_seed": seed})
+        done = False
+        while not done:
+            obs, _, terminated, truncated, _ = env.step(policy.predict(obs))
+            done = terminated or truncated
+        records.append(_record(env.loop, 0, scene, seed, time.perf_counter() - start))
+        bar.update(1)
+        bar.set_postfix(cr=f"{np.mean([r['cr'] for r in records]):.2f}")
+    bar.close()
+    env.close()
     return records
 
 

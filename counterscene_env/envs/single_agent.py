@@ -244,8 +244,14 @@ class CounterSceneEnv(AbstractEnv):
 
     # ------------------------------------------------------------------ episode
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict]:
-        """Start an episode. ``options``: ``{"config": {...}}`` (as highway-env) and/or
-        ``{"scene": Scene}`` to run a given scene instead of drawing one."""
+        """Start an episode.
+
+        ``options`` (all optional): ``"config"``: config updates, as highway-env;
+        ``"scene"``: a :class:`Scene` to run instead of drawing one; ``"episode_seed"``: the
+        closed loop's seed (world-model noise, adversary tie-breaks) instead of one drawn from
+        the env's generator; ``counterscene stress`` passes its episode seeds so every planner
+        meets the same traffic randomness.
+        """
         options = dict(options or {})  # other keys are ignored (PettingZoo's API test sends some)
         gym.Env.reset(self, seed=seed)
         if "config" in options:
@@ -275,7 +281,10 @@ class CounterSceneEnv(AbstractEnv):
         sim = self.sim_config
         if self.loop is None or self.loop.model is not model or self.loop.config != sim:
             self.loop = ClosedLoop(model, sim)
-        self.loop.reset([scene], [int(self.np_random.integers(2**31))], [egos])
+        seed = self._reset_options.get("episode_seed")
+        if seed is None:
+            seed = int(self.np_random.integers(2**31))
+        self.loop.reset([scene], [int(seed)], [egos])
         self.scene, self.egos = scene, egos
         self._frames = [[dict(i) for i in self.loop.infos(0)]]
         self._ended = [False] * len(egos)

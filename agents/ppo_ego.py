@@ -1,0 +1,195 @@
+"""PPO ego against CounterScene's guided adversary: train, save, stress-test (one file).
+
+Trains Stable-Baselines3 PPO on ``CounterScene-v0`` (world-model traffic, the causal adversary
+guided with ``--guidance``, default ``full``) with ``--num-envs`` subprocess envs, saves
+``OUT/model.zip`` and its env sidecar ``OUT/model.env.json`` (the observation and action config,
+so ``counterscene stress --planner sb3:OUT/model.zip`` rebuilds matching spaces), then
+stress-tests the policy on ``--eval-episodes`` held-out episodes (seeds from ``--eval-seed``)
+with ``--guidance none`` and ``full``, next to highway-env's IDM planner on the same episodes,
+and writes ``OUT/eval.json``.
+
+The default ego acts like highway-env's ``intersection-v2`` ego: ``DiscreteMetaAction``
+(SLOWER / IDLE / FASTER among 0, 4.5 and 9 m/s; the vehicle follows the lanes of its logged
+route) at 2 Hz, observing ``Kinematics``. Run::
+
+    python agents/ppo_ego.py --total-timesteps 6000 --out runs/ppo_ego      # ~20 min, 2 cores
+    python agents/ppo_ego.py --total-timesteps 64 --eval-episodes 1 --num-envs 1   # smoke test
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+
+
+@dataclass
+class Args:
+    scenario: str = "intersection"
+    """training and evaluation scenario (a CounterScene-v0 ``scenario`` spec)"""
+    total_timesteps: int = 6000
+    """policy steps of training, all envs together"""
+    num_envs: int = 2
+    """parallel envs (subprocesses when > 1)"""
+    seed: int = 0
+    """seed of training (envs, PPO)"""
+    guidance: str = "full"
+    """guidance preset of the training traffic"""
+    policy_frequency: int = 2
+    """decisions per second [Hz] (divides 10)"""
+    action: str = "DiscreteMetaAction"
+    """highway-env action type: DiscreteMetaAction or ContinuousAction"""
+    duration: float = 10.0
+    """episode length [s]"""
+    num_samples: int = 4
+    """world-model samples per replan"""
+    learning_rate: float = 5e-4
+    n_steps: int = 64
+    """rollout steps per env and update"""
+    batch_size: int = 64
+    n_epochs: int = 10
+    gamma: float = 0.9
+    eval_episodes: int = 20
+    """stress episodes per row of the evaluation"""
+    eval_seed: int = 100000
+    """seed of evaluation episode 0 (held out: training scenes take random seeds)"""
+    out: str = "runs/ppo_ego"
+    torch_threads: int = 1
+    """torch threads per process"""
+
+
+def parse_args(argv: list[str] | None = None) -> Args:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    for f in dataclasses.fields(Args):
+        flag = "--" + f.name.replace("_", "-")
+        parser.add_argument(flag, type=type(f.default), default=f.default)
+    return Args(**vars(parser.parse_args(argv)))
+
+
+def env_config(args: Args) -> dict:
+    """The CounterScene-v0 config of training (and the sidecar's observation and action)."""
+    action = (
+        {"type": "DiscreteMetaAction", "longitudinal": True, "lateral": False,
+         "target_speeds": [0, 4.5, 9]}
+        if args.action == "DiscreteMetaAction"
+        else {"type": args.action}
+    )  # fmt: skip
+    return {
+        "scenario": args.scenario,
+        "guidance": args.guidance,
+        "policy_frequency": args.policy_frequency,
+        "duration": args.duration,
+        "num_samples": args.num_samples,
+        "action": action,
+        "reward_speed_range": [4.0, 9.0],
+    }
+
+
+def make_env(config: dict, threads: int):
+    def thunk():
+        import gymnasium as gym
+        import torch
+        from stable_baselines3.common.monitor import Monitor
+
+        torch.set_num_threads(threads)
+        return Monitor(gym.make("counterscene_env:CounterScene-v0", config=config))
+
+    return thunk
+
+
+def train(args: Args, out: Path) -> Path:
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    torch.set_num_threads(args.torch_threads)
+    config = env_config(args)
+    fns = [make_env(config, args.torch_threads) for _ in range(args.num_envs)]
+    venv = SubprocVecEnv(fns) if args.num_envs > 1 else DummyVecEnv(fns)
+    venv.seed(args.seed)
+    model = PPO(
+        "MlpPolicy",
+        venv,
+        learning_rate=args.learning_rate,
+        n_steps=args.n_steps,
+        batch_size=args.batch_size,
+        n_epochs=args.n_epochs,
+        gamma=args.gamma,
+        seed=args.seed,
+        device="cpu",
+        verbose=1,
+    )
+    start = time.perf_counter()
+    model.learn(total_timesteps=args.total_timesteps)
+    seconds = time.perf_counter() - start
+    venv.close()
+    path = out / "model.zip"
+    model.save(path)
+    sidecar = {k: config[k] for k in ("observation", "action", "policy_frequency") if k in config}
+    sidecar.setdefault("observation", _default_observation())
+    (out / "model.env.json").write_text(json.dumps(sidecar, indent=2) + "\n")
+    (out / "train.json").write_text(
+        json.dumps(
+            {"args": dataclasses.asdict(args), "train_seconds": seconds,
+             "timesteps": int(model.num_timesteps)},
+            indent=2,
+        ) + "\n"
+    )  # fmt: skip
+    print(f"trained {model.num_timesteps} steps in {seconds:.0f} s -> {path}")
+    return path
+
+
+def _default_observation() -> dict:
+    from counterscene_env.envs.single_agent import CounterSceneEnv
+
+    return CounterSceneEnv.default_config()["observation"]
+
+
+def evaluate(args: Args, path: Path, out: Path) -> dict:
+    """Stress rows: the PPO policy and IDM, each with guidance none and full."""
+    from counterscene_env.metrics import json_safe
+    from counterscene_env.sim import SimConfig
+    from counterscene_env.stress import StressConfig, run_episodes, run_policy_episodes, summarize
+    from counterscene_env.world_model import load_model
+
+    keys = ("cr", "cr_ego_adversary", "hbr_ego", "orr", "mean_min_ttc",
+            "mean_min_clearance_adversary", "fallbacks", "seconds_per_episode")  # fmt: skip
+    rows = {}
+    for planner in (f"sb3:{path}", "idm"):
+        for guidance in ("none", "full"):
+            sim = SimConfig(duration=args.duration, num_samples=args.num_samples, guidance=guidance)
+            config = StressConfig(
+                scenario=args.scenario,
+                episodes=args.eval_episodes,
+                seed=args.eval_seed,
+                planner=planner,
+                sim=sim,
+            )
+            if planner == "idm":
+                records = run_episodes(load_model(), config, progress=False)
+            else:
+                records = run_policy_episodes(config, progress=False)
+            summary = summarize(records, config)
+            name = f"{'ppo' if planner != 'idm' else 'idm'} {guidance}"
+            rows[name] = {k: summary[k] for k in keys}
+            print(name, json.dumps(json_safe(rows[name])))
+    (out / "eval.json").write_text(json.dumps(json_safe(rows), indent=2) + "\n")
+    return rows
+
+
+def main(argv: list[str] | None = None) -> dict:
+    args = parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = train(args, out)
+    return evaluate(args, path, out)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,60 @@
+"""Env throughput: steps per second of ``CounterScene-v0`` (``counterscene bench-env``)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+
+def bench_env(
+    config: dict | None = None, steps: int = 500, seed: int = 0, threads: int | None = None
+) -> dict:
+    """Step ``CounterScene-v0`` ``steps`` times with actions sampled from its action space
+    (seeded), resetting at episode ends, and time it.
+
+    Returns:
+        ``{"steps", "episodes", "seconds", "steps_per_second", "reset_seconds_mean",
+        "step_seconds_mean", "replan_share", "threads", "config"}``: ``steps_per_second``
+        counts resets in (what a training loop sees); ``step_seconds_mean`` excludes them;
+        ``replan_share`` is the fraction of step time spent in world-model replans.
+    """
+    import torch
+
+    from counterscene_env.envs.single_agent import CounterSceneEnv
+
+    if threads:
+        torch.set_num_threads(threads)
+    env = CounterSceneEnv(config=config)
+    env.action_space.seed(seed)
+    reset_times, step_times = [], []
+    replan = 0.0
+    start = time.perf_counter()
+    t = time.perf_counter()
+    env.reset(seed=seed)
+    reset_times.append(time.perf_counter() - t)
+    episodes = 1
+    for _ in range(steps):
+        t = time.perf_counter()
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        step_times.append(time.perf_counter() - t)
+        if terminated or truncated:
+            replan += env.loop.episodes[0].replan_seconds
+            t = time.perf_counter()
+            env.reset()
+            reset_times.append(time.perf_counter() - t)
+            episodes += 1
+    seconds = time.perf_counter() - start
+    replan += env.loop.episodes[0].replan_seconds
+    env.close()
+    return {
+        "steps": steps,
+        "episodes": episodes,
+        "seconds": seconds,
+        "steps_per_second": steps / seconds,
+        "reset_seconds_mean": float(np.mean(reset_times)),
+        "step_seconds_mean": float(np.mean(step_times)),
+        "replan_share": replan / float(np.sum(step_times)),
+        "threads": torch.get_num_threads(),
+        "config": dict(env.config),
+    }
