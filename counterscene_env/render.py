@@ -52,8 +52,9 @@ class CounterSceneViewer(EnvViewer):
         if not self.enabled:
             return
         env = self.env
-        for v in env.controlled_vehicles:
-            v.color = CRASHED_COLOR if v.crashed else EGO_COLOR
+        for k, v in enumerate(env.controlled_vehicles):
+            hit = v.crashed or env.ego_info(k)["collision"]
+            v.color = CRASHED_COLOR if hit else EGO_COLOR
         super().display()
         if env.config["show_adversary_plan"]:
             self._draw_adversaries()

@@ -90,6 +90,15 @@ class CounterSceneParallelEnv(ParallelEnv):
     def reset(
         self, seed: int | None = None, options: dict | None = None
     ) -> tuple[dict[str, Any], dict[str, dict]]:
+        fixed = sorted(
+            {"observation", "action", "controlled_vehicles"}
+            & set((options or {}).get("config", {}))
+        )
+        if fixed:
+            raise ValueError(
+                f"reset cannot change {fixed} of a parallel env (its spaces are fixed): make a "
+                "new env with counterscene_env.parallel_env(...)"
+            )
         obs, _ = self.core.reset(seed=seed, options=options)
         self.agents = list(self.possible_agents)
         observations = {a: self._obs(obs, k) for k, a in enumerate(self.possible_agents)}

@@ -348,7 +348,10 @@ class CounterSceneEnv(AbstractEnv):
             self._frames.append([dict(i) for i in self.loop.infos(0)])
             self._sync_road()
             self.steps += 1
-            if self.loop.done.all() or self._any_new_end():
+            for k, v in enumerate(self.controlled_vehicles):
+                if not v.crashed and self._ego_ended(k):
+                    v.crashed = True  # done: it brakes to a stop where it is (highway-env)
+            if self.loop.done.all() or self._all_ended():
                 break
             if frame < frames - 1:
                 self._automatic_rendering()
@@ -367,12 +370,13 @@ class CounterSceneEnv(AbstractEnv):
             v.heading, v.speed = float(state.yaws[i]), float(state.speeds[i])
             v.color = ADVERSARY_COLOR if i in adversaries else TRAFFIC_COLOR
             present.append(v)
-        for k, v in enumerate(self.controlled_vehicles):
-            v.crashed = v.crashed or self._frames[-1][k]["collision"]
         self.road.vehicles = [*self.controlled_vehicles, *present]
 
-    def _any_new_end(self) -> bool:
-        return any(self._ego_ended(k) for k in range(len(self.egos)) if not self._ended[k])
+    def _all_ended(self) -> bool:
+        """Every ego is done: the rest of the policy step would simulate no one's decision.
+        (An ego that ends mid-step with others still driving brakes to a stop, crashed, and
+        its end is reported at the end of the policy step.)"""
+        return all(self._ended[k] or self._ego_ended(k) for k in range(len(self.egos)))
 
     # ------------------------------------------------------------------ per ego
     def ego_info(self, k: int = 0) -> dict:
@@ -450,7 +454,7 @@ class CounterSceneEnv(AbstractEnv):
         info = self.ego_info(0)
         info["rewards"] = self.ego_rewards(0)
         info["speed"] = float(self.vehicle.speed)
-        info["crashed"] = bool(self.vehicle.crashed)
+        info["crashed"] = bool(self.vehicle.crashed or info["collision"])
         if self.steps and (any(self._ended) or self.loop.done.all()):
             info["metrics"] = self.episode_metrics(0)
         return info

@@ -1,0 +1,394 @@
+"""CounterScene-v0, the Gymnasium env: registration, API checkers, spaces, determinism, episode
+end, info and reward, bad input and collisions."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from conftest import make_scene
+
+import counterscene_env
+from counterscene_env.envs.single_agent import CounterSceneEnv
+from counterscene_env.world_model.checkpoint import CheckpointError
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+SHORT = {"duration": 1.0}
+INFO_KEYS = (
+    "collision",
+    "collided_with",
+    "hard_braking",
+    "ego_acceleration",
+    "adversary",
+    "conflict_type",
+    "danger_score",
+    "conflict_point",
+    "arrival_steps",
+    "adversary_distance",
+    "min_ttc",
+    "off_road",
+    "fallback",
+    "rewards",
+)
+REWARD_KEYS = ("collision_reward", "off_road_reward", "hard_braking_reward", "high_speed_reward")
+ZERO = np.zeros(2, np.float32)
+
+
+@pytest.fixture(scope="module")
+def env():
+    """One short merge env shared by the tests that only reset and step it."""
+    env = gym.make("CounterScene-merge-v0", config=SHORT)
+    yield env
+    env.close()
+
+
+def run_episode(env, seed, actions=None, options=None):
+    """(reset result, list of step results) of a whole episode; ``actions`` cycles."""
+    first = env.reset(seed=seed, options=options)
+    steps = []
+    while True:
+        a = ZERO if actions is None else actions[len(steps) % len(actions)]
+        steps.append(env.step(a))
+        if steps[-1][2] or steps[-1][3]:
+            return first, steps
+
+
+def same(a, b) -> bool:
+    """Deep equality of observations and infos; NaN equals NaN."""
+    if isinstance(a, dict):
+        return isinstance(b, dict) and a.keys() == b.keys() and all(same(a[k], b[k]) for k in a)
+    if isinstance(a, list | tuple):
+        return type(a) is type(b) and len(a) == len(b) and all(map(same, a, b))
+    if isinstance(a, np.ndarray):
+        return isinstance(b, np.ndarray) and a.dtype == b.dtype and np.array_equal(a, b, True)
+    if isinstance(a, float) and math.isnan(a):
+        return isinstance(b, float) and math.isnan(b)
+    return type(a) is type(b) and a == b
+
+
+def crash_scene(T: int = 40):
+    """Straight 2-lane road. Row 0 (the ego) drives east on y = 0 at 10 m/s from x = 50; row 2
+    is parked 14 m ahead of it in its lane (in the log for 2 s only); row 1 drives beside the
+    ego on y = 4, 30 m behind. An ego at full throttle hits row 2 within a second."""
+    t = np.arange(T) * 0.1
+    ego = np.stack([50 + 10 * t, np.zeros(T)], -1)
+    beside = np.stack([20 + 10 * t, np.full(T, 4.0)], -1)
+    parked = np.tile([64.0, 0.0], (T, 1))
+    valid = np.ones((3, T), bool)
+    valid[2, 20:] = False
+    speeds = np.array([np.full(T, 10.0), np.full(T, 10.0), np.zeros(T)])
+    return make_scene(
+        np.stack([ego, beside, parked]), speeds=speeds, valid=valid, scenario_id="planted-crash"
+    )
+
+
+# ---------------------------------------------------------------------- registration
+def test_registered_ids_make_working_envs():
+    """The documented ids all make the env; the variants fix the scenario."""
+    for env_id, scenario in (
+        ("CounterScene-v0", "intersection"),
+        ("counterscene_env:CounterScene-v0", "intersection"),
+        ("CounterScene-merge-v0", "merge"),
+    ):
+        env = gym.make(env_id, config=SHORT)
+        assert isinstance(env.unwrapped, CounterSceneEnv)
+        assert env.unwrapped.config["scenario"] == scenario
+        obs, info = env.reset(seed=0)
+        assert obs.shape == (10, 7) and env.action_space.shape == (2,)
+        assert info["scenario_id"].startswith(f"{scenario}/")
+        env.close()
+    for scenario in counterscene_env.SCENARIO_VARIANTS:
+        assert gym.spec(f"CounterScene-{scenario}-v0").kwargs["scenario"] == scenario
+    # config["scenario"] overrides a variant's default
+    env = gym.make("CounterScene-merge-v0", config={**SHORT, "scenario": "roundabout"})
+    assert env.unwrapped.config["scenario"] == "roundabout"
+    env.close()
+
+
+def test_registration_is_idempotent():
+    """Re-registering (a re-import, a notebook reload) warns about nothing and changes nothing."""
+    import pettingzoo
+
+    before = gym.spec("CounterScene-v0")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        counterscene_env._register()
+        counterscene_env._register()
+    assert gym.spec("CounterScene-v0") is before
+    assert "CounterScene-v0" in pettingzoo.parallel_registry
+
+
+# ---------------------------------------------------------------------- API checkers
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario", counterscene_env.SCENARIO_VARIANTS)
+def test_gymnasium_and_sb3_env_checkers_pass(scenario, generated, tmp_path):
+    """Both checkers pass on every scenario with the shipped model. The env draws from a shard
+    holding one generated scene of the scenario: the checkers reset ~20 times with fresh seeds,
+    and generating a fresh highway recording each time would take minutes."""
+    from gymnasium.utils.env_checker import check_env
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    from counterscene_env.scene.shards import save_scenes
+
+    shard = save_scenes([generated[scenario]], tmp_path / f"{scenario}.npz")
+    env = gym.make("CounterScene-v0", config={**SHORT, "scenario": str(shard)})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env.unwrapped)
+        sb3_check_env(env.unwrapped)
+    messages = [f"{w.category.__name__}: {w.message}" for w in caught]
+    # The only one allowed: SB3 on the 2-D Kinematics observation (highway-env's convention).
+    assert len(messages) == 1, messages
+    assert caught[0].category is UserWarning and "unconventional shape" in messages[0]
+    env.close()
+
+
+# ---------------------------------------------------------------------- action types
+def test_discrete_meta_action_drives_an_episode():
+    """DiscreteMetaAction: Discrete(5) lane-following meta-actions; an episode runs to its end;
+    an index outside the space is refused."""
+    env = gym.make(
+        "CounterScene-merge-v0", config={**SHORT, "action": {"type": "DiscreteMetaAction"}}
+    )
+    assert env.action_space == gym.spaces.Discrete(5)
+    _, steps = run_episode(env, 0, actions=[1, 3, np.int64(1)])  # IDLE, FASTER, numpy int
+    assert len(steps) == 10 and steps[-1][3] and not steps[-1][2]
+    env.reset(seed=0)
+    for bad in (7, -1, 1.5, np.array([1, 2])):
+        with pytest.raises(ValueError, match="not in the action space"):
+            env.step(bad)
+    env.close()
+
+
+def test_intersection_v2_style_config():
+    """highway-env's intersection-v2 ego setup: 15 absolute Kinematics rows, 3 longitudinal
+    meta-actions at three target speeds, one decision per second."""
+    config = {
+        "duration": 2.0,
+        "policy_frequency": 1,
+        "observation": {
+            "type": "Kinematics",
+            "vehicles_count": 15,
+            "features": ["presence", "x", "y", "vx", "vy", "cos_h", "sin_h"],
+            "features_range": {
+                "x": [-100, 100],
+                "y": [-100, 100],
+                "vx": [-20, 20],
+                "vy": [-20, 20],
+            },
+            "absolute": True,
+            "flatten": False,
+            "observe_intentions": False,
+        },
+        "action": {
+            "type": "DiscreteMetaAction",
+            "longitudinal": True,
+            "lateral": False,
+            "target_speeds": [0, 4.5, 9],
+        },
+    }
+    env = gym.make("CounterScene-intersection-v0", config=config)
+    assert env.action_space == gym.spaces.Discrete(3)
+    assert env.observation_space.shape == (15, 7)
+    (obs, _), steps = run_episode(env, 0, actions=[2])
+    assert obs.shape == (15, 7) and obs.dtype == np.float32
+    assert len(steps) == 2, "2 s at one decision per second"
+    assert [s[4]["step"] for s in steps] == [10, 20]  # 10 simulation steps per decision
+    assert all(env.observation_space.contains(s[0]) for s in steps)
+    env.close()
+
+
+# ---------------------------------------------------------------------- determinism
+def test_same_seed_and_actions_give_the_same_episode():
+    """Two separately made envs, same seed and actions: every step's observation, reward,
+    flags and info are identical. Another seed gives another episode."""
+    actions = np.random.default_rng(0).uniform(-1, 1, (10, 2)).astype(np.float32) * [1, 0.1]
+    a_env = gym.make("CounterScene-merge-v0", config=SHORT)
+    b_env = gym.make("CounterScene-merge-v0", config=SHORT)
+    a0, a = run_episode(a_env, 5, actions)
+    b0, b = run_episode(b_env, 5, actions)
+    assert same(a0[0], b0[0]) and same(a0[1], b0[1])
+    assert len(a) == len(b) == 10
+    for k, (sa, sb) in enumerate(zip(a, b, strict=True)):
+        assert same(sa[0], sb[0]), f"observation of step {k}"
+        assert sa[1:4] == sb[1:4], f"reward / flags of step {k}"
+        for key in sa[4]:
+            assert same(sa[4][key], sb[4][key]), f"info[{key!r}] of step {k}"
+        assert sa[4].keys() == sb[4].keys()
+    c0, c = run_episode(b_env, 6, actions)
+    assert c0[1]["scenario_id"] != a0[1]["scenario_id"] or not same(c[-1][0], a[-1][0])
+    a_env.close()
+    b_env.close()
+
+
+# ---------------------------------------------------------------------- spaces and returns
+def test_observations_stay_in_the_space_and_returns_are_plain(env):
+    """Every observation is a float32 member of observation_space (the [-1, 1] box);
+    rewards are Python floats and the flags Python bools."""
+    space = env.observation_space
+    assert space == gym.spaces.Box(-1.0, 1.0, (10, 7), np.float32)
+    (obs, info), steps = run_episode(env, 3)
+    assert obs.dtype == np.float32 and space.contains(obs)
+    assert isinstance(info, dict)
+    for obs, reward, terminated, truncated, _ in steps:
+        assert obs.dtype == np.float32 and space.contains(obs)
+        assert type(reward) is float and math.isfinite(reward)
+        assert type(terminated) is bool and type(truncated) is bool
+        assert not (terminated and truncated)
+
+
+def test_episode_is_truncated_at_the_time_limit_and_then_refuses_steps(env):
+    """duration 1 s at 10 Hz: nine ordinary steps, truncated at the tenth (no collision here),
+    and a step after the end raises."""
+    _, steps = run_episode(env, 0)
+    assert len(steps) == 10
+    assert [s[3] for s in steps] == [False] * 9 + [True]
+    assert not any(s[2] for s in steps)
+    assert steps[-1][4]["time"] == pytest.approx(1.0)
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(ZERO)
+    env.reset(seed=0)
+    env.step(ZERO)  # a reset makes it usable again
+
+
+def test_step_before_reset_raises():
+    """gym.make's order enforcing refuses a step before the first reset."""
+    env = gym.make("CounterScene-merge-v0", config=SHORT)
+    with pytest.raises(gym.error.ResetNeeded):
+        env.step(ZERO)
+    env.close()
+
+
+# ---------------------------------------------------------------------- info and reward
+def test_info_keys_reward_terms_and_end_metrics(env):
+    """Every step's info has the documented keys; the reward is the config-weighted sum of
+    info["rewards"]; the last step carries the episode's metrics."""
+    config = env.unwrapped.config
+    (_, info0), steps = run_episode(env, 1)
+    for key in INFO_KEYS:
+        if key != "rewards":
+            assert key in info0, key
+    assert "metrics" not in info0
+    for k, (_, reward, _, _, info) in enumerate(steps):
+        for key in INFO_KEYS:
+            assert key in info, f"step {k} lacks {key!r}"
+        assert set(info["rewards"]) == set(REWARD_KEYS)
+        assert all(0.0 <= v <= 1.0 for v in info["rewards"].values())
+        expected = sum(config[name] * term for name, term in info["rewards"].items())
+        assert reward == pytest.approx(expected)
+        assert ("metrics" in info) == (k == len(steps) - 1)
+    metrics = steps[-1][4]["metrics"]
+    for key in ("cr", "orr", "per_second", "scenario_id"):
+        assert key in metrics
+    assert metrics["cr"] == 0.0 and metrics["scenario_id"] == steps[-1][4]["scenario_id"]
+
+
+# ---------------------------------------------------------------------- bad input
+def test_bad_actions_are_refused_and_out_of_range_values_clipped(env):
+    """A wrong shape or a NaN raises ValueError; values outside [-1, 1] are clipped, so the
+    ego's acceleration stays within ContinuousAction's [-5, 5] m/s^2."""
+    env.reset(seed=2)
+    with pytest.raises(ValueError, match=r"shape \(2,\)"):
+        env.step(np.zeros(3, np.float32))
+    with pytest.raises(ValueError, match=r"shape \(2,\)"):
+        env.step(np.zeros((1, 2), np.float32))
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(np.array([np.nan, 0.0], np.float32))
+    with pytest.raises(ValueError, match="NaN or inf"):
+        env.step(np.array([0.0, np.inf], np.float32))
+    assert env.unwrapped.steps == 0, "refused actions do not advance the episode"
+    _, _, _, _, info = env.step(np.array([5.0, -5.0], np.float32))
+    assert 4.9 <= info["ego_acceleration"] <= 5.0 + 1e-6
+    _, _, _, _, info = env.step(np.array([-50.0, 0.0], np.float32))
+    assert -5.0 - 1e-6 <= info["ego_acceleration"] <= -4.9
+
+
+def test_bad_config_is_refused_with_a_clear_error():
+    """Config mistakes fail at gym.make with a message that says what is wrong."""
+    with pytest.raises(ValueError, match="durration") as exc:
+        gym.make("CounterScene-merge-v0", config={"durration": 1.0})
+    assert "valid keys" in str(exc.value) and "'duration'" in str(exc.value)
+    with pytest.raises(ValueError, match="unknown scenario 'parking'"):
+        gym.make("CounterScene-v0", config={"scenario": "parking"})
+    with pytest.raises(CheckpointError, match="/nonexistent/dir"):
+        gym.make("CounterScene-merge-v0", config={**SHORT, "model": "/nonexistent/dir"})
+    with pytest.raises(ValueError, match="screen_width must be a multiple of 16"):
+        gym.make("CounterScene-merge-v0", config={"screen_width": 600})
+    with pytest.raises(ValueError, match="policy_frequency"):
+        gym.make("CounterScene-merge-v0", config={"policy_frequency": 3})
+    with pytest.raises(ValueError, match="render_mode"), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # gym.make's own warning about the unknown mode
+        gym.make("CounterScene-merge-v0", config=SHORT, render_mode="rgb")
+
+
+# ---------------------------------------------------------------------- reset options and config
+def test_reset_runs_a_given_scene(env, generated):
+    """reset(options={"scene": scene}) runs that scene instead of drawing one."""
+    scene = generated["merge"]
+    _, info = env.reset(seed=0, options={"scene": scene})
+    assert info["scenario_id"] == scene.scenario_id == "merge/seed=1"
+    assert env.unwrapped.scene is scene
+    _, info = env.reset(seed=0)  # the next plain reset draws again
+    assert info["scenario_id"] != scene.scenario_id
+    with pytest.raises(TypeError, match="Scene"):
+        env.reset(seed=0, options={"scene": "merge/seed=1"})
+
+
+def test_configure_and_reset_options_apply_new_config():
+    """configure() then reset, or reset(options={"config": ...}), runs with the new config;
+    an unknown key is refused there too."""
+    env = gym.make("CounterScene-merge-v0", config=SHORT)
+    env.unwrapped.configure({"duration": 0.5})
+    _, steps = run_episode(env, 0)
+    assert len(steps) == 5
+    _, steps = run_episode(env, 0, options={"config": {"duration": 0.3, "policy_frequency": 5}})
+    assert len(steps) == 2, "0.3 s at 5 Hz: the last decision is cut at the time limit"
+    assert env.unwrapped.config["policy_frequency"] == 5
+    with pytest.raises(ValueError, match="unknown CounterScene config keys"):
+        env.unwrapped.configure({"speed_limit": 3})
+    with pytest.raises(ValueError, match="policy_frequency"):
+        env.reset(seed=0, options={"config": {"policy_frequency": 4}})
+    env.close()
+
+
+# ---------------------------------------------------------------------- collisions
+def test_a_collision_terminates_with_the_collision_reward():
+    """Full throttle into a parked car: terminated (not truncated) on the step it hits,
+    info names the car, and the reward carries the (configured) collision weight."""
+    config = {"duration": 2.0, "collision_reward": -7.0, "high_speed_reward": 0.5}
+    env = gym.make("CounterScene-merge-v0", config=config)
+    env.reset(seed=0, options={"scene": crash_scene()})
+    for _ in range(20):
+        _, reward, terminated, truncated, info = env.step(np.array([1.0, 0.0], np.float32))
+        if terminated or truncated:
+            break
+    assert terminated and not truncated
+    assert info["collision"] and info["collided_with"] == "a2" and info["crashed"]
+    assert info["rewards"]["collision_reward"] == 1.0
+    assert reward == pytest.approx(-7.0 + 0.5 * info["rewards"]["high_speed_reward"])
+    assert info["metrics"]["cr"] == 1.0
+    with pytest.raises(RuntimeError):
+        env.step(ZERO)
+    env.close()
+
+
+def test_without_terminate_on_collision_the_episode_goes_on():
+    env = gym.make(
+        "CounterScene-merge-v0", config={"duration": 2.0, "terminate_on_collision": False}
+    )
+    _, steps = run_episode(
+        env, 0, actions=[np.array([1.0, 0.0], np.float32)], options={"scene": crash_scene()}
+    )
+    assert len(steps) == 20 and steps[-1][3]
+    assert not any(s[2] for s in steps)
+    hits = [s[4]["collision"] for s in steps]
+    assert any(hits) and not hits[-1]
+    # The ego stays under the policy's control after the hit (full throttle: it speeds up).
+    first = hits.index(True)
+    speeds = [s[4]["ego_speed"] for s in steps[first:]]
+    assert speeds[-1] > speeds[0]
+    env.close()
