@@ -12,7 +12,9 @@ The default ego acts like highway-env's ``intersection-v2`` ego: ``DiscreteMetaA
 (SLOWER / IDLE / FASTER among 0, 4.5 and 9 m/s; the vehicle follows the lanes of its logged
 route) at 2 Hz, observing ``Kinematics``. Run::
 
-    python agents/ppo_ego.py --total-timesteps 6000 --out runs/ppo_ego      # ~20 min, 2 cores
+    counterscene generate --scenario intersection --scenes 400 --seed 0 --out data/intersection
+    python agents/ppo_ego.py --scenario data/intersection --eval-scenario intersection \
+        --total-timesteps 4800 --out runs/ppo_ego            # ~20 min of training on 2 cores
     python agents/ppo_ego.py --total-timesteps 64 --eval-episodes 1 --num-envs 1   # smoke test
 """
 
@@ -32,8 +34,11 @@ os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 @dataclass
 class Args:
     scenario: str = "intersection"
-    """training and evaluation scenario (a CounterScene-v0 ``scenario`` spec)"""
-    total_timesteps: int = 6000
+    """training scenario (a CounterScene-v0 ``scenario`` spec: a name, or a dataset directory
+    from ``counterscene generate``, which saves generating a scene per episode)"""
+    eval_scenario: str = ""
+    """evaluation scenario (default: ``scenario``)"""
+    total_timesteps: int = 4800
     """policy steps of training, all envs together"""
     num_envs: int = 2
     """parallel envs (subprocesses when > 1)"""
@@ -165,7 +170,7 @@ def evaluate(args: Args, path: Path, out: Path) -> dict:
         for guidance in ("none", "full"):
             sim = SimConfig(duration=args.duration, num_samples=args.num_samples, guidance=guidance)
             config = StressConfig(
-                scenario=args.scenario,
+                scenario=args.eval_scenario or args.scenario,
                 episodes=args.eval_episodes,
                 seed=args.eval_seed,
                 planner=planner,
