@@ -180,6 +180,12 @@ def _parser() -> argparse.ArgumentParser:
     bv.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     bv.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
     bv.add_argument(
+        "--policy",
+        default="random",
+        choices=("random", "hold"),
+        help="random actions, or hold speed and course (default random)",
+    )
+    bv.add_argument(
         "--set",
         nargs="*",
         default=[],
@@ -270,14 +276,17 @@ def _cmd_bench_env(args: argparse.Namespace) -> int:
     from counterscene_env.envs.bench import bench_env
 
     config = {"scenario": args.scenario, **_parse_overrides(args.set)}
-    result = bench_env(config, steps=args.steps, seed=args.seed, threads=args.threads)
+    result = bench_env(
+        config, steps=args.steps, seed=args.seed, threads=args.threads, policy=args.policy
+    )
     if args.json:
         print(json.dumps(json_safe(result)))
         return 0
     c = result["config"]
     print(
         f"CounterScene-v0 {c['scenario']}, guidance {c['guidance']}, {c['num_samples']} samples, "
-        f"policy {c['policy_frequency']} Hz, {result['threads']} torch threads"
+        f"policy {c['policy_frequency']} Hz, {result['threads']} torch threads, "
+        f"{result['policy']} actions"
     )
     print(
         f"  {result['steps_per_second']:.1f} steps/s over {result['steps']} steps and "

@@ -3,6 +3,7 @@ end, info and reward, bad input and collisions."""
 
 from __future__ import annotations
 
+import json
 import math
 import warnings
 
@@ -392,3 +393,13 @@ def test_without_terminate_on_collision_the_episode_goes_on():
     speeds = [s[4]["ego_speed"] for s in steps[first:]]
     assert speeds[-1] > speeds[0]
     env.close()
+
+
+def test_bench_env_cli_reports_steps_per_second(capsys):
+    from counterscene_env.cli import main
+
+    assert main(["bench-env", "--scenario", "merge", "--steps", "3", "--policy", "hold",
+                 "--set", "duration=1.0", "--json"]) == 0  # fmt: skip
+    out = json.loads(capsys.readouterr().out)
+    assert out["steps"] == 3 and out["steps_per_second"] > 0 and out["policy"] == "hold"
+    assert 0.0 <= out["replan_share"] <= 1.0 and out["config"]["duration"] == 1.0

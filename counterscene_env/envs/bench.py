@@ -8,10 +8,17 @@ import numpy as np
 
 
 def bench_env(
-    config: dict | None = None, steps: int = 500, seed: int = 0, threads: int | None = None
+    config: dict | None = None,
+    steps: int = 500,
+    seed: int = 0,
+    threads: int | None = None,
+    policy: str = "random",
 ) -> dict:
-    """Step ``CounterScene-v0`` ``steps`` times with actions sampled from its action space
-    (seeded), resetting at episode ends, and time it.
+    """Step ``CounterScene-v0`` ``steps`` times, resetting at episode ends, and time it.
+
+    ``policy``: ``random`` (actions sampled from the action space, seeded; episodes end early
+    in collisions, so resets weigh more) or ``hold`` (keep speed and course: zero
+    acceleration and steering, or ``IDLE``; episodes mostly run to the time limit).
 
     Returns:
         ``{"steps", "episodes", "seconds", "steps_per_second", "reset_seconds_mean",
@@ -27,6 +34,16 @@ def bench_env(
         torch.set_num_threads(threads)
     env = CounterSceneEnv(config=config)
     env.action_space.seed(seed)
+    if policy not in ("random", "hold"):
+        raise ValueError(f"policy must be 'random' or 'hold', got {policy!r}")
+    if policy == "hold":
+        from gymnasium import spaces
+
+        space = env.action_space
+        if isinstance(space, spaces.Box):
+            hold = np.zeros(space.shape, space.dtype)
+        else:
+            hold = env.action_type.actions_indexes["IDLE"]
     reset_times, step_times = [], []
     replan = 0.0
     start = time.perf_counter()
@@ -36,7 +53,8 @@ def bench_env(
     episodes = 1
     for _ in range(steps):
         t = time.perf_counter()
-        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        action = env.action_space.sample() if policy == "random" else hold
+        _, _, terminated, truncated, _ = env.step(action)
         step_times.append(time.perf_counter() - t)
         if terminated or truncated:
             replan += env.loop.episodes[0].replan_seconds
@@ -56,5 +74,6 @@ def bench_env(
         "step_seconds_mean": float(np.mean(step_times)),
         "replan_share": replan / float(np.sum(step_times)),
         "threads": torch.get_num_threads(),
+        "policy": policy,
         "config": dict(env.config),
     }
