@@ -173,3 +173,30 @@ def test_save_video_mp4_without_imageio_ffmpeg_says_what_to_install(tmp_path, mo
     monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)
     with pytest.raises(ImportError, match=r"imageio-ffmpeg.*pip install"):
         save_video(video_frames(), tmp_path / "a.mp4")
+
+
+def test_real_map_lanes_render():
+    """Lanes built from centre lines (real logs) have line types, so highway-env's renderer
+    draws them, also when read back from a road written before they had any."""
+    from highway_env.road.lane import LineType
+
+    from counterscene_env.scene.road import RoadMap, network_from_json, network_to_json
+
+    curve = np.stack([np.linspace(0, 120, 40), 10 * np.sin(np.linspace(0, 2, 40))], -1)
+    road = RoadMap.from_centerlines([curve, curve + np.array([0.0, 3.5])], [3.5, 3.5])
+    lanes = road.network.lanes_list()
+    assert all(lane.line_types == (LineType.STRIPED, LineType.STRIPED) for lane in lanes)
+    text = network_to_json(road.network)
+    assert '"line_types": [1, 1]' in text
+    old = text.replace('"line_types": [1, 1]', '"line_types": null')
+    assert all(lane.line_types is not None for lane in network_from_json(old).lanes_list())
+
+    T = 40
+    xy = np.stack([np.tile(curve[5], (T, 1)), np.tile(curve[20], (T, 1))])  # two parked cars
+    scene = make_scene(xy, road=road, scenario_id="curved")
+    env = gym.make("CounterScene-v0", config={"duration": 1.0}, render_mode="rgb_array")
+    env.reset(seed=0, options={"scene": scene})
+    frame = env.render()
+    assert_frame(frame, 640, 640)
+    assert pixels(frame, (255, 255, 255)) > 100  # the lane lines
+    env.close()

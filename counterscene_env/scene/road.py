@@ -18,6 +18,7 @@ import shapely
 from highway_env.road.lane import (
     AbstractLane,
     CircularLane,
+    LineType,
     PolyLane,
     PolyLaneFixedWidth,
     SineLane,
@@ -255,7 +256,13 @@ def _clip_polyline(points: np.ndarray, box: shapely.Geometry | None) -> list[np.
 
 
 def _poly_lane(points: np.ndarray, width: float, **kwargs) -> PolyLaneFixedWidth:
-    """A ``PolyLaneFixedWidth`` that remembers its source points ``[P, 2]`` m for serialising."""
+    """A ``PolyLaneFixedWidth`` that remembers its source points ``[P, 2]`` m for serialising.
+
+    Without ``line_types`` its edges are striped (highway-env's default for its other lanes;
+    its renderer cannot draw a lane whose ``line_types`` is None).
+    """
+    if kwargs.get("line_types") is None:
+        kwargs["line_types"] = (LineType.STRIPED, LineType.STRIPED)
     lane = PolyLaneFixedWidth(points.tolist(), width=width, **kwargs)
     lane.source_points = np.asarray(points, dtype=np.float64)
     return lane
