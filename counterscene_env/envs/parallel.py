@@ -117,10 +117,10 @@ class CounterSceneParallelEnv(ParallelEnv):
             )
         core = self.core
         types = core.action_type.agents_action_types
-        for a in self.agents:
-            k = self.possible_agents.index(a)
+        for a in self.agents:  # every action is checked before any is applied
             check_action(self.action_spaces[a], actions[a], f"{a}'s action")
-            types[k].act(_as_action(actions[a]))
+        for a in self.agents:
+            types[self.possible_agents.index(a)].act(_as_action(actions[a]))
         core.time += 1 / core.config["policy_frequency"]
         core._simulate(None)
         obs = core.observation_type.observe()

@@ -479,9 +479,6 @@ class CounterSceneEnv(AbstractEnv):
             return self.viewer.get_image()
         return None
 
-    def close(self) -> None:
-        super().close()
-
 
 #: Vehicle colours of the viewer (RGB): the adversary, other world-model traffic.
 ADVERSARY_COLOR = (200, 40, 220)
