@@ -383,6 +383,14 @@ class ClosedLoop:
         actions = _check_rows(actions, B, E, 2, "actions")
         ego_states = _check_rows(ego_states, B, E, 4, "ego_states", allow_nan_rows=True)
         active = [b for b, ep in enumerate(self.episodes) if not ep.done]
+        # Every ego's input is checked before anything moves: a bad call changes nothing.
+        states = {}
+        for b in active:
+            rows = [None] * E if ego_states is None else list(ego_states[b])
+            rows = [None if r is not None and np.isnan(r).all() else r for r in rows]
+            if actions is None and any(r is None for r in rows):
+                raise ValueError("step needs actions or ego_states for every running ego")
+            states[b] = rows
         due = [
             b
             for b in active
@@ -392,13 +400,7 @@ class ClosedLoop:
             self._replan(due)
         for b in active:
             ep = self.episodes[b]
-            states = [None] * E if ego_states is None else list(ego_states[b])
-            for k, state in enumerate(states):
-                if state is not None and np.isnan(state).all():
-                    states[k] = None
-                if states[k] is None and actions is None:
-                    raise ValueError("step needs actions or ego_states for every running ego")
-            self._advance(ep, None if actions is None else actions[b], states)
+            self._advance(ep, None if actions is None else actions[b], states[b])
             ep.records.append([self._info(ep, k, replanned=b in due) for k in range(E)])
         return [ep.records[-1][0] for ep in self.episodes]
 

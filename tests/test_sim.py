@@ -170,6 +170,9 @@ def test_bad_input_is_refused_with_a_clear_error(model, generated):
         loop.step(np.array([[np.nan, 0.0]]))
     with pytest.raises(ValueError, match="actions or ego_states"):
         loop.step()
+    # None of the refused calls moved anything (no replan, no step).
+    assert loop.episodes[0].replans == 0
+    assert loop.state(0).t == generated["merge"].current_index
     with pytest.raises(ValueError, match="unknown selector"):
         SimConfig(selector="closest")
     with pytest.raises(ValueError, match="unknown guidance preset"):
@@ -189,3 +192,29 @@ def test_model_source_reselects_at_every_replan(model, generated):
         sources.append((info["replanned"], info["fallback"]))
     assert [r for r, _ in sources].count(True) == 2  # steps 0 and 5 of 10
     assert sources[0][1] != "not selected yet"  # mined on the model's own sample
+
+
+def test_several_egos_each_follow_their_actions_with_their_own_adversary(model, generated):
+    """Two egos: [B, E, 2] actions drive each through its own bicycle; each has its own
+    adversary, never the other ego; infos(b) has one dict per ego."""
+    scene = generated["merge"]
+    e0 = scene.ego_index
+    t = scene.current_index
+    others = [r for r in range(scene.num_agents) if r != e0 and scene.valid[r, t]]
+    e1 = others[0]
+    loop = ClosedLoop(model, SHORT)
+    loop.reset([scene], [0], egos=[[e0, e1]])
+    with pytest.raises(ValueError, match=r"actions must have shape \(1, 2, 2\)"):
+        loop.step(np.zeros((1, 2)))
+    speeds = scene.speeds[[e0, e1], t]
+    for _ in range(5):
+        loop.step(np.array([[[2.0, 0.0], [-2.0, 0.0]]]))
+    infos = loop.infos(0)
+    assert len(infos) == 2
+    v = loop.state(0).speeds[[e0, e1]]
+    assert v[0] == pytest.approx(speeds[0] + 1.0, abs=1e-6)  # +2 m/s^2 for 0.5 s
+    assert v[1] == pytest.approx(max(speeds[1] - 1.0, 0.0), abs=1e-6)
+    ids = {str(scene.agent_ids[e0]), str(scene.agent_ids[e1])}
+    adversaries = [i["adversary"] for i in infos if i["adversary"] is not None]
+    assert not ids & set(adversaries)
+    assert len(adversaries) == len(set(adversaries))
