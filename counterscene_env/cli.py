@@ -263,7 +263,12 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="the paper's selection (no strict gates: parked or far adversaries allowed)",
     )
-    st.add_argument("--batch", type=int, default=4, help="episodes advanced together (4)")
+    st.add_argument(
+        "--batch",
+        type=int,
+        default=4,
+        help="episodes advanced together (4; sb3 planners run one at a time)",
+    )
     st.add_argument("--model", default="default", help="model directory (default: shipped)")
     st.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     st.add_argument("--out", help="also write DIR/metrics.json and DIR/episodes.jsonl")

@@ -230,6 +230,9 @@ class SB3Policy:
                 self._weights = z.read("policy.pth")
         except (zipfile.BadZipFile, KeyError, json.JSONDecodeError) as exc:
             raise ValueError(f"{self.path}: not a Stable-Baselines3 model zip ({exc})") from None
+        missing = sorted({"observation_space", "action_space"} - set(self.data))
+        if missing:
+            raise ValueError(f"{self.path}: not a Stable-Baselines3 model zip (no {missing})")
         self.policy_class = _sb3_policy_class(self.data, self.path)
         kwargs = self.data.get("policy_kwargs", {})
         if not isinstance(kwargs, dict) or ":serialized:" in kwargs:
@@ -304,15 +307,22 @@ def _sb3_policy_class(data: dict, path: Path):
     module = cls.get("__module__", "") if isinstance(cls, dict) else ""
     init = cls.get("__init__", "") if isinstance(cls, dict) else ""
     match = re.match(r"<function (\w+)\.__init__", init)
-    if not module.startswith("stable_baselines3.") or match is None:
+    if not (module.startswith("stable_baselines3.") and module.endswith(".policies")) or (
+        match is None
+    ):
         raise ValueError(
             f"{path}: policy class {module or '?'} is not one of Stable-Baselines3's; only "
             "those are loaded (by name, without unpickling)"
         )
+    from stable_baselines3.common.policies import BasePolicy
+
     try:
-        return getattr(importlib.import_module(module), match.group(1))
+        cls = getattr(importlib.import_module(module), match.group(1))
     except (ImportError, AttributeError) as exc:
         raise ValueError(f"{path}: cannot find policy class {module}.{match.group(1)}") from exc
+    if not (isinstance(cls, type) and issubclass(cls, BasePolicy)):
+        raise ValueError(f"{path}: {module}.{match.group(1)} is not an SB3 policy class")
+    return cls
 
 
 def _space_signature(entry: dict) -> tuple:

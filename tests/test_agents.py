@@ -123,11 +123,26 @@ def test_sb3_policy_rejects_foreign_and_corrupt_files(tmp_path):
     (tmp_path / "junk.zip").write_bytes(b"not a zip")
     with pytest.raises(ValueError, match="not a Stable-Baselines3 model zip"):
         SB3Policy(tmp_path / "junk.zip")
-    with zipfile.ZipFile(tmp_path / "foreign.zip", "w") as z:
-        policy_class = {"__module__": "evil.module", "__init__": "<function Evil.__init__ at 0>"}
-        z.writestr("data", json.dumps({"policy_class": policy_class}))
+    spaces = {"observation_space": {}, "action_space": {}}
+    for name, module, init in (
+        ("foreign", "evil.module", "<function Evil.__init__ at 0>"),
+        (
+            "not_policies",
+            "stable_baselines3.common.utils",
+            "<function get_linear_fn.__init__ at 0>",
+        ),
+        ("not_a_policy", "stable_baselines3.common.policies", "<function BaseModel.__init__ at 0>"),
+    ):
+        with zipfile.ZipFile(tmp_path / f"{name}.zip", "w") as z:
+            policy_class = {"__module__": module, "__init__": init}
+            z.writestr("data", json.dumps({"policy_class": policy_class, **spaces}))
+            z.writestr("policy.pth", b"")
+        with pytest.raises(ValueError, match=r"not one of Stable-Baselines3.s|not an SB3 policy"):
+            SB3Policy(tmp_path / f"{name}.zip")
+    with zipfile.ZipFile(tmp_path / "no_spaces.zip", "w") as z:
+        z.writestr("data", json.dumps({"policy_class": {}}))
         z.writestr("policy.pth", b"")
-    with pytest.raises(ValueError, match="not one of Stable-Baselines3's"):
-        SB3Policy(tmp_path / "foreign.zip")
+    with pytest.raises(ValueError, match="no \\['action_space', 'observation_space'\\]"):
+        SB3Policy(tmp_path / "no_spaces.zip")
     with pytest.raises(FileNotFoundError):
         SB3Policy(tmp_path / "missing.zip")

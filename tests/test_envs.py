@@ -403,3 +403,109 @@ def test_bench_env_cli_reports_steps_per_second(capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["steps"] == 3 and out["steps_per_second"] > 0 and out["policy"] == "hold"
     assert 0.0 <= out["replan_share"] <= 1.0 and out["config"]["duration"] == 1.0
+
+
+# ---------------------------------------------------------------------- refused calls, spaces
+def test_a_refused_configure_or_reset_changes_nothing():
+    env = gym.make("CounterScene-merge-v0", config=SHORT)
+    u = env.unwrapped
+    env.reset(seed=0)
+    before = dict(u.config)
+    with pytest.raises(ValueError, match="unknown scenario"):
+        u.configure({"scenario": "nope"})
+    assert u.config == before
+    with pytest.raises(ValueError, match="multi-agent"):
+        env.reset(seed=1, options={"config": {"controlled_vehicles": 2}})
+    assert u.config == before
+    with pytest.raises(TypeError, match="Scene"):
+        env.reset(options={"scene": "x", "config": {"action": {"type": "DiscreteMetaAction"}}})
+    assert u.config == before and env.action_space.shape == (2,)
+    env.reset(seed=2)  # still works
+    env.step(ZERO)
+    env.close()
+
+
+def test_partial_features_range_is_not_declared_bounded():
+    """highway-env scales only the features of features_range: vx, vy here stay in m/s, so
+    the space must not claim [-1, 1]; the observation is in its space at every step."""
+    obs_config = {
+        "type": "Kinematics",
+        "features": ["presence", "x", "y", "vx", "vy"],
+        "features_range": {"x": [-100, 100], "y": [-100, 100]},
+    }
+    env = gym.make("CounterScene-merge-v0", config={**SHORT, "observation": obs_config})
+    assert np.isinf(env.observation_space.high).all()
+    _, steps = run_episode(env, 0)
+    assert all(env.observation_space.contains(s[0]) for s in steps)
+    bounded = gym.make("CounterScene-merge-v0", config=SHORT)
+    assert bounded.observation_space.high.max() == 1.0
+    env.close()
+    bounded.close()
+
+
+def test_time_to_collision_observation_needs_discrete_meta_action():
+    with pytest.raises(ValueError, match="DiscreteMetaAction"):
+        gym.make(
+            "CounterScene-merge-v0", config={**SHORT, "observation": {"type": "TimeToCollision"}}
+        )
+    env = gym.make(
+        "CounterScene-merge-v0",
+        config={**SHORT, "observation": {"type": "TimeToCollision"},
+                "action": {"type": "DiscreteMetaAction"}},
+    )  # fmt: skip
+    obs, _ = env.reset(seed=0)
+    obs, *_ = env.step(1)
+    assert env.observation_space.contains(obs)
+    env.close()
+
+
+def test_lane_features_see_the_current_lanes():
+    """Lane-relative features are computed on each vehicle's current lane."""
+    obs_config = {"type": "Kinematics", "features": ["presence", "x", "y", "lat_off"]}
+    env = gym.make("CounterScene-merge-v0", config={"duration": 3.0, "observation": obs_config})
+    env.reset(seed=0)
+    for _ in range(20):
+        env.step(ZERO)
+    u = env.unwrapped
+    net = u.road.network
+    for v in u.road.vehicles[1:]:
+        assert v.lane_index == net.get_closest_lane_index(v.position, v.heading)
+    env.close()
+
+
+def test_multi_ego_gym_env_refuses_steps_after_termination():
+    """controlled_vehicles > 1 needs highway-env's multi-agent types; once an ego is done,
+    the episode is over."""
+    with pytest.raises(ValueError, match="MultiAgentObservation"):
+        gym.make("CounterScene-merge-v0", config={**SHORT, "controlled_vehicles": 2})
+    config = {
+        "duration": 2.0,
+        "controlled_vehicles": 2,
+        "observation": {
+            "type": "MultiAgentObservation",
+            "observation_config": {"type": "Kinematics"},
+        },
+        "action": {"type": "MultiAgentAction", "action_config": {"type": "ContinuousAction"}},
+    }
+    env = gym.make("CounterScene-merge-v0", config=config)
+    env.reset(seed=0, options={"scene": crash_scene()})
+    full = np.array([1.0, 0.0], np.float32)
+    for _ in range(20):
+        _, _, terminated, truncated, _ = env.step([full, ZERO])  # a list works as a tuple
+        if terminated or truncated:
+            break
+    assert terminated
+    with pytest.raises(RuntimeError, match="reset"):
+        env.unwrapped.step((ZERO, ZERO))
+    env.close()
+
+
+def test_render_fps_is_per_instance():
+    a = gym.make("CounterScene-merge-v0", config={**SHORT, "policy_frequency": 2})
+    b = gym.make("CounterScene-merge-v0", config=SHORT)
+    a.reset(seed=0)
+    b.reset(seed=0)
+    assert a.unwrapped.metadata["render_fps"] == 2
+    assert b.unwrapped.metadata["render_fps"] == 10
+    a.close()
+    b.close()

@@ -149,7 +149,3 @@ class CounterSceneParallelEnv(ParallelEnv):
 
     def close(self) -> None:
         self.core.close()
-
-    def state(self) -> np.ndarray:
-        """Every agent's observation, stacked ``[n, ...]`` (PettingZoo's global state)."""
-        return np.stack(self.core.observation_type.observe())

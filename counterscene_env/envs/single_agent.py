@@ -11,6 +11,7 @@ docstring of :class:`CounterSceneEnv` and ``docs/environment.md``.
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -70,9 +71,10 @@ class CounterSceneEnv(AbstractEnv):
     action outside a discrete space raises ``ValueError``.
 
     **Observation space.** highway-env's ``config["observation"]``. Default ``Kinematics``:
-    ``Box(-1, 1, (10, 7), float32)``, the ego and its 9 nearest agents, features
-    ``presence, x, y, vx, vy, cos_h, sin_h``, x and y scaled from [-100, 100] m and vx, vy from
-    [-20, 20] m/s to [-1, 1] (clipped), other agents relative to the ego.
+    ``Box(-1, 1, (10, 7), float32)``, the ego and up to 9 other agents within 200 m (nearest
+    along the ego's lane first, behind it too), features ``presence, x, y, vx, vy, cos_h,
+    sin_h``, x and y scaled from [-100, 100] m and vx, vy from [-20, 20] m/s to [-1, 1]
+    (clipped), other agents relative to the ego.
 
     **Rewards.** A weighted sum of named terms, highway-env style (``info["rewards"]`` has
     each term): ``collision_reward`` (-5) x collision, ``off_road_reward`` (-1) x off road,
@@ -128,6 +130,16 @@ class CounterSceneEnv(AbstractEnv):
         self._reset_options: dict = {}
         super().__init__(config, render_mode)
 
+    def update_metadata(self, video_real_time_ratio: int = 1) -> None:
+        """This instance's ``render_fps``: one frame per policy step (per simulation step
+        while a ``RecordVideo`` wrapper records the intermediate frames), in real time."""
+        fps = (
+            self.config["simulation_frequency"]
+            if self._record_video_wrapper
+            else self.config["policy_frequency"]
+        )
+        self.metadata = {**type(self).metadata, "render_fps": video_real_time_ratio * fps}
+
     # ------------------------------------------------------------------ configuration
     @classmethod
     def default_config(cls) -> dict:
@@ -158,6 +170,7 @@ class CounterSceneEnv(AbstractEnv):
                         "vy": [-20, 20],
                     },
                     "absolute": False,
+                    "see_behind": True,
                 },
                 "action": {"type": "ContinuousAction"},
                 "controlled_vehicles": 1,
@@ -193,8 +206,9 @@ class CounterSceneEnv(AbstractEnv):
         candidate = dict(self.config)
         candidate.update(config or {})
         self._validate(candidate)
-        super().configure(dict(config or {}))
-        self._source = SceneSource(self.config["scenario"])
+        source = SceneSource(candidate["scenario"])  # raises on an unknown scenario
+        super().configure(dict(config or {}))  # nothing changes before every check passed
+        self._source = source
 
     @staticmethod
     def _validate(config: dict) -> None:
@@ -205,7 +219,7 @@ class CounterSceneEnv(AbstractEnv):
                 f"got {config['simulation_frequency']}"
             )
         pf = config["policy_frequency"]
-        if not isinstance(pf, int) or pf < 1 or sim % pf:
+        if not isinstance(pf, numbers.Integral) or pf < 1 or sim % pf:
             raise ValueError(f"policy_frequency must divide {sim} Hz (1, 2, 5, 10), got {pf!r}")
         for key in ("screen_width", "screen_height"):
             if config[key] % 16:
@@ -213,8 +227,28 @@ class CounterSceneEnv(AbstractEnv):
                     f"{key} must be a multiple of 16 px (video codecs), got {config[key]}"
                 )
         n = config["controlled_vehicles"]
-        if not isinstance(n, int) or n < 1:
+        if not isinstance(n, numbers.Integral) or n < 1:
             raise ValueError(f"controlled_vehicles must be an int >= 1, got {n!r}")
+        obs, act = config["observation"], config["action"]
+        multi = (obs.get("type") == "MultiAgentObservation", act.get("type") == "MultiAgentAction")
+        if n > 1 and not all(multi):
+            raise ValueError(
+                f"controlled_vehicles = {n} needs highway-env's multi-agent types: observation "
+                "{'type': 'MultiAgentObservation', 'observation_config': {...}} and action "
+                "{'type': 'MultiAgentAction', 'action_config': {...}} (or use "
+                "counterscene_env.parallel_env)"
+            )
+        if n == 1 and any(multi):
+            raise ValueError(
+                "the multi-agent observation and action types need controlled_vehicles > 1"
+            )
+        obs = obs.get("observation_config", obs)
+        act = act.get("action_config", act)
+        if obs.get("type") == "TimeToCollision" and act.get("type") != "DiscreteMetaAction":
+            raise ValueError(
+                "the TimeToCollision observation needs the DiscreteMetaAction action type "
+                "(its grid is over the ego's target speeds)"
+            )
         lo, hi = config["reward_speed_range"]
         if not hi > lo:
             raise ValueError(f"reward_speed_range must be [low, high] m/s, got {[lo, hi]}")
@@ -224,6 +258,12 @@ class CounterSceneEnv(AbstractEnv):
         """highway-env's spaces, with the ``Kinematics`` box bounded to [-1, 1] when every
         feature is normalised and clipped there (highway-env declares (-inf, inf))."""
         super().define_spaces()
+        obs = self.config["observation"]
+        obs = obs.get("observation_config", obs)
+        self._needs_lanes = not (
+            obs.get("type") == "Kinematics"
+            and set(obs.get("features", KinematicObservation.FEATURES)) <= _LANE_FREE_FEATURES
+        )
         if isinstance(self.observation_space, spaces.Tuple):
             self.observation_space = spaces.Tuple(
                 [
@@ -253,16 +293,29 @@ class CounterSceneEnv(AbstractEnv):
         meets the same traffic randomness.
         """
         options = dict(options or {})  # other keys are ignored (PettingZoo's API test sends some)
-        gym.Env.reset(self, seed=seed)
-        if "config" in options:
-            self.configure(options["config"])
-        self._reset_options = options
-        self.update_metadata()
-        self.define_spaces()  # first: the ego's vehicle class depends on the action type
-        self.time = self.steps = 0
-        self.done = False
-        self._reset()
-        self.define_spaces()  # again: observation and action types bound to the new egos
+        scene = options.get("scene")
+        if scene is not None and not isinstance(scene, Scene):
+            raise TypeError(f"options['scene'] must be a Scene, got {type(scene).__name__}")
+        saved = dict(self.config), self._source
+        try:
+            if "config" in options:
+                self.configure(options["config"])
+            if scene is not None:
+                pick_egos(scene, self.config["controlled_vehicles"])  # raises before any change
+            gym.Env.reset(self, seed=seed)
+            self._reset_options = options
+            self.update_metadata()
+            self.define_spaces()  # first: the ego's vehicle class depends on the action type
+            self.time = self.steps = 0
+            self.done = False
+            self._reset()
+            self.define_spaces()  # again: observation and action types bound to the new egos
+        except Exception:
+            # A refused reset leaves the config as it was; the old episode cannot go on.
+            self.config, self._source = saved
+            self.define_spaces()
+            self.loop = None
+            raise
         obs = self.observation_type.observe()
         info = self._info(obs, None)
         if self.render_mode == "human":
@@ -274,8 +327,6 @@ class CounterSceneEnv(AbstractEnv):
         scene = self._reset_options.get("scene")
         if scene is None:
             scene = self._source.draw(self.np_random)
-        elif not isinstance(scene, Scene):
-            raise TypeError(f"options['scene'] must be a Scene, got {type(scene).__name__}")
         egos = pick_egos(scene, config["controlled_vehicles"])
         model = load_world_model(config["model"])
         sim = self.sim_config
@@ -326,8 +377,10 @@ class CounterSceneEnv(AbstractEnv):
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         if self.loop is None:
             raise RuntimeError("call reset() before step()")
-        if self.loop.done.all() or all(self._ended):
+        if self.loop.done.all() or any(self._ended):
             raise RuntimeError("the episode is over (terminated or truncated): call reset()")
+        if isinstance(self.action_space, spaces.Tuple) and isinstance(action, list):
+            action = tuple(action)  # one action per ego, as highway-env's MultiAgentAction
         check_action(self.action_space, action)
         return super().step(action)
 
@@ -368,6 +421,8 @@ class CounterSceneEnv(AbstractEnv):
                 continue
             v.position = np.array(state.positions[i], dtype=np.float64)
             v.heading, v.speed = float(state.yaws[i]), float(state.speeds[i])
+            if self._needs_lanes:
+                v.on_state_update()  # its lane, for lane-based features (costly on big maps)
             v.color = ADVERSARY_COLOR if i in adversaries else TRAFFIC_COLOR
             present.append(v)
         self.road.vehicles = [*self.controlled_vehicles, *present]
@@ -501,7 +556,7 @@ def check_action(space: spaces.Space, action: Any, who: str = "action") -> None:
     """Raise ValueError on an action that does not fit ``space``: a wrong shape, NaN or inf,
     a value outside a discrete space (out-of-range Box values are clipped by highway-env)."""
     if isinstance(space, spaces.Tuple):
-        if not isinstance(action, tuple) or len(action) != len(space.spaces):
+        if not isinstance(action, tuple | list) or len(action) != len(space.spaces):
             raise ValueError(f"{who} must be a tuple of {len(space.spaces)} actions")
         for k, (sub, a) in enumerate(zip(space.spaces, action, strict=True)):
             check_action(sub, a, f"{who}[{k}]")
@@ -521,24 +576,41 @@ def check_action(space: spaces.Space, action: Any, who: str = "action") -> None:
             raise ValueError(f"{who} {action!r} is not in the action space {space}")
 
 
-#: Kinematics features that normalisation with clipping keeps in [-1, 1].
-_UNIT_FEATURES = {"presence", "x", "y", "vx", "vy", "cos_h", "sin_h", "cos_d", "sin_d"}
+#: Kinematics features in [-1, 1] by construction.
+_UNIT_FEATURES = {"presence", "cos_h", "sin_h", "cos_d", "sin_d"}
+#: Kinematics features that need no lane of the observed vehicles.
+_LANE_FREE_FEATURES = {
+    "presence",
+    "x",
+    "y",
+    "vx",
+    "vy",
+    "heading",
+    "cos_h",
+    "sin_h",
+    "cos_d",
+    "sin_d",
+}
 
 
 def _bounded(space: spaces.Space, obs_type: Any) -> spaces.Space:
-    if (
-        isinstance(obs_type, KinematicObservation)
-        and obs_type.normalize
-        and obs_type.clip
-        and set(obs_type.features) <= _UNIT_FEATURES
-        and isinstance(space, spaces.Box)
-    ):
+    """[-1, 1] when every Kinematics feature is there: by construction, or normalised and
+    clipped (highway-env scales only the features of ``features_range``; without one, its
+    defaults cover x, y, vx, vy)."""
+    if not (isinstance(obs_type, KinematicObservation) and isinstance(space, spaces.Box)):
+        return space
+    scaled = set(obs_type.features_range or ("x", "y", "vx", "vy"))
+    unit = _UNIT_FEATURES | (scaled if obs_type.normalize and obs_type.clip else set())
+    if set(obs_type.features) <= unit:
         return spaces.Box(-1.0, 1.0, space.shape, space.dtype)
     return space
 
 
 def _as_action(action: Any) -> Any:
-    """highway-env's action types index dicts with ints and use arrays for boxes."""
+    """highway-env's action types index dicts with ints, use arrays for boxes and tuples for
+    several egos."""
+    if isinstance(action, tuple):
+        return tuple(_as_action(a) for a in action)
     if isinstance(action, np.ndarray) and action.ndim == 0:
         return int(action)
     if isinstance(action, np.integer):
