@@ -91,7 +91,7 @@ def test_agents_and_spaces(env):
         assert env.observation_space(a).contains(obs[a])
         assert type(rewards[a]) is float and type(terms[a]) is bool and type(truncs[a]) is bool
         assert "rewards" in infos[a] and "adversary" in infos[a]
-    assert env.state().shape == (2, 10, 7)
+    assert env.state().shape == (2, 10, 7) and env.state_space.contains(env.state())
 
 
 def test_each_ego_has_its_own_adversary_never_another_ego():

@@ -76,6 +76,23 @@ class CounterSceneParallelEnv(ParallelEnv):
         self.action_spaces = dict(
             zip(self.possible_agents, self.core.action_space.spaces, strict=True)
         )
+        boxes = list(self.observation_spaces.values())
+        self.state_space = (
+            spaces.Box(
+                np.stack([b.low for b in boxes]),
+                np.stack([b.high for b in boxes]),
+                dtype=boxes[0].dtype,
+            )
+            if all(isinstance(b, spaces.Box) for b in boxes)
+            else None
+        )
+
+    def state(self) -> np.ndarray:
+        """The global state: every ego's observation stacked, ``[n, *obs_shape]``
+        (``state_space``); for Box observations only."""
+        if self.state_space is None:
+            raise NotImplementedError("state() needs Box observations")
+        return np.stack(self.core.observation_type.observe())
 
     def observation_space(self, agent: str) -> spaces.Space:
         return self.observation_spaces[agent]

@@ -238,10 +238,6 @@ class CounterSceneEnv(AbstractEnv):
                 "{'type': 'MultiAgentAction', 'action_config': {...}} (or use "
                 "counterscene_env.parallel_env)"
             )
-        if n == 1 and any(multi):
-            raise ValueError(
-                "the multi-agent observation and action types need controlled_vehicles > 1"
-            )
         obs = obs.get("observation_config", obs)
         act = act.get("action_config", act)
         if obs.get("type") == "TimeToCollision" and act.get("type") != "DiscreteMetaAction":
