@@ -39,6 +39,23 @@ def make_scene(
     )
 
 
+def crash_scene(T: int = 40) -> Scene:
+    """Straight 2-lane road. Row 0 (the ego) drives east on y = 0 at 10 m/s from x = 50; row 2
+    is parked 14 m ahead of it in its lane (in the log for 2 s only, so it is never picked as
+    a second ego); row 1 drives beside it on y = 4, 30 m behind, with a clear lane. An ego at
+    full throttle hits row 2 within a second."""
+    t = np.arange(T) * 0.1
+    ego = np.stack([50 + 10 * t, np.zeros(T)], -1)
+    beside = np.stack([20 + 10 * t, np.full(T, 4.0)], -1)
+    parked = np.tile([64.0, 0.0], (T, 1))
+    valid = np.ones((3, T), bool)
+    valid[2, 20:] = False
+    speeds = np.array([np.full(T, 10.0), np.full(T, 10.0), np.zeros(T)])
+    return make_scene(
+        np.stack([ego, beside, parked]), speeds=speeds, valid=valid, scenario_id="planted-crash"
+    )
+
+
 @pytest.fixture(scope="module")
 def one_torch_thread():
     """Tiny models on a shared 2-core machine: one torch thread is several times faster than

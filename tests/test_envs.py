@@ -10,7 +10,7 @@ import warnings
 import gymnasium as gym
 import numpy as np
 import pytest
-from conftest import make_scene
+from conftest import crash_scene
 
 import counterscene_env
 from counterscene_env.envs.single_agent import CounterSceneEnv
@@ -69,22 +69,6 @@ def same(a, b) -> bool:
     if isinstance(a, float) and math.isnan(a):
         return isinstance(b, float) and math.isnan(b)
     return type(a) is type(b) and a == b
-
-
-def crash_scene(T: int = 40):
-    """Straight 2-lane road. Row 0 (the ego) drives east on y = 0 at 10 m/s from x = 50; row 2
-    is parked 14 m ahead of it in its lane (in the log for 2 s only); row 1 drives beside the
-    ego on y = 4, 30 m behind. An ego at full throttle hits row 2 within a second."""
-    t = np.arange(T) * 0.1
-    ego = np.stack([50 + 10 * t, np.zeros(T)], -1)
-    beside = np.stack([20 + 10 * t, np.full(T, 4.0)], -1)
-    parked = np.tile([64.0, 0.0], (T, 1))
-    valid = np.ones((3, T), bool)
-    valid[2, 20:] = False
-    speeds = np.array([np.full(T, 10.0), np.full(T, 10.0), np.zeros(T)])
-    return make_scene(
-        np.stack([ego, beside, parked]), speeds=speeds, valid=valid, scenario_id="planted-crash"
-    )
 
 
 # ---------------------------------------------------------------------- registration

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pettingzoo
 import pytest
-from conftest import make_scene
+from conftest import crash_scene
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
 import counterscene_env
@@ -30,22 +30,6 @@ def ego_ids(env) -> list[str]:
     """The scene's agent id of each ego (ego_0 first)."""
     core = env.core
     return [str(core.scene.agent_ids[e]) for e in core.egos]
-
-
-def crash_scene(T: int = 40):
-    """Straight 2-lane road. Row 0 (ego_0) drives east on y = 0 at 10 m/s from x = 50; row 2
-    is parked 14 m ahead of it (in the log for 2 s only, so it is not picked as an ego); row 1
-    (ego_1) drives on y = 4, 30 m behind, with a clear lane."""
-    t = np.arange(T) * 0.1
-    ego = np.stack([50 + 10 * t, np.zeros(T)], -1)
-    beside = np.stack([20 + 10 * t, np.full(T, 4.0)], -1)
-    parked = np.tile([64.0, 0.0], (T, 1))
-    valid = np.ones((3, T), bool)
-    valid[2, 20:] = False
-    speeds = np.array([np.full(T, 10.0), np.full(T, 10.0), np.zeros(T)])
-    return make_scene(
-        np.stack([ego, beside, parked]), speeds=speeds, valid=valid, scenario_id="planted-crash"
-    )
 
 
 @pytest.mark.slow
