@@ -37,7 +37,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--scenario", default="intersection")
     parser.add_argument("--episodes", type=int, default=2)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=2)
     parser.add_argument("--gif", help="save the first episode's frames here (.gif or .mp4)")
     args = parser.parse_args()
 
