@@ -26,7 +26,8 @@ if TYPE_CHECKING:
 
 EGO_COLOR = VehicleGraphics.EGO_COLOR
 CRASHED_COLOR = VehicleGraphics.RED
-PLAN_COLOR = (200, 40, 220)
+PLAN_COLOR = ADVERSARY_COLOR = (200, 40, 220)
+TRAFFIC_COLOR = (100, 200, 255)
 CONFLICT_COLOR = (230, 30, 30)
 
 
@@ -55,6 +56,9 @@ class CounterSceneViewer(EnvViewer):
         for k, v in enumerate(env.controlled_vehicles):
             hit = v.crashed or env.ego_info(k)["collision"]
             v.color = CRASHED_COLOR if hit else EGO_COLOR
+        adversaries = set(env.loop.episodes[0].adversaries)
+        for row, v in env.traffic.items():
+            v.color = ADVERSARY_COLOR if row in adversaries else TRAFFIC_COLOR
         super().display()
         if env.config["show_adversary_plan"]:
             self._draw_adversaries()

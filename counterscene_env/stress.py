@@ -213,7 +213,7 @@ def run_policy_episodes(
     """
     from tqdm.auto import tqdm
 
-    from counterscene_env.envs.single_agent import CounterSceneEnv
+    from counterscene_env.envs.single_agent import SIM_KEYS, CounterSceneEnv
     from counterscene_env.planners import SB3Policy
 
     policy = SB3Policy(config.planner.removeprefix(SB3_PREFIX))
@@ -223,13 +223,7 @@ def run_policy_episodes(
         **(env_config or {}),
         "scenario": config.scenario if config.scenario in GENERATED else "merge",
         "model": model,
-        "duration": sim.duration,
-        "replan_every": sim.replan_every,
-        "num_samples": sim.num_samples,
-        "selector": sim.selector,
-        "selection_source": sim.selection_source,
-        "strict_gates": sim.strict_gates,
-        "guidance": sim.guidance,
+        **{key: getattr(sim, key) for key in SIM_KEYS},
         "terminate_on_collision": False,
         "terminate_on_off_road": False,
     }

@@ -118,7 +118,7 @@ class CounterSceneParallelEnv(ParallelEnv):
             )
         obs, _ = self.core.reset(seed=seed, options=options)
         self.agents = list(self.possible_agents)
-        observations = {a: self._obs(obs, k) for k, a in enumerate(self.possible_agents)}
+        observations = {a: obs[k] for k, a in enumerate(self.possible_agents)}
         infos = {a: self.core.ego_info(k) for k, a in enumerate(self.possible_agents)}
         return observations, infos
 
@@ -144,7 +144,7 @@ class CounterSceneParallelEnv(ParallelEnv):
         observations, rewards, terminations, truncations, infos = {}, {}, {}, {}, {}
         for a in self.agents:
             k = self.possible_agents.index(a)
-            observations[a] = self._obs(obs, k)
+            observations[a] = obs[k]
             rewards[a] = core.ego_reward(k)
             terminations[a] = core.ego_terminated(k)
             truncations[a] = core.ego_truncated(k)
@@ -157,9 +157,6 @@ class CounterSceneParallelEnv(ParallelEnv):
         if self.render_mode == "human":
             self.render()
         return observations, rewards, terminations, truncations, infos
-
-    def _obs(self, obs: tuple, k: int) -> Any:
-        return obs[k]
 
     def render(self) -> np.ndarray | None:
         return self.core.render()

@@ -32,13 +32,16 @@ from counterscene_env.sim import ClosedLoop, SimConfig
 
 #: Keys of highway-env's base config that mean nothing here (the traffic is the world model).
 _UNUSED_BASE_KEYS = ("other_vehicles_type",)
-#: Reward terms: config key -> what it weights (each term is in [0, 1]).
-REWARD_TERMS = {
-    "collision_reward": "the ego's box overlaps another agent's",
-    "off_road_reward": "the ego's centre is outside the drivable area",
-    "hard_braking_reward": "the ego's longitudinal acceleration is below -3 m/s^2",
-    "high_speed_reward": "the ego's speed, mapped linearly from reward_speed_range to [0, 1]",
-}
+#: Config keys that are closed-loop settings (``SimConfig`` fields of the same name).
+SIM_KEYS = (
+    "duration",
+    "replan_every",
+    "num_samples",
+    "selector",
+    "selection_source",
+    "strict_gates",
+    "guidance",
+)
 
 _MODELS: dict[str, Any] = {}
 
@@ -123,7 +126,7 @@ class CounterSceneEnv(AbstractEnv):
         self.loop: ClosedLoop | None = None
         self.scene: Scene | None = None
         self.egos: list[int] = []
-        self._others: dict[int, Vehicle] = {}
+        self.traffic: dict[int, Vehicle] = {}  # scene row -> its highway-env vehicle (not egos)
         self._frames: list[list[dict]] = []
         self._ended: list[bool] = []
         self._source: SceneSource | None = None
@@ -361,13 +364,13 @@ class CounterSceneEnv(AbstractEnv):
                 )
                 v.plan_route_to(goal[1])
             self.controlled_vehicles.append(v)
-        self._others = {}
+        self.traffic = {}
         for i in range(scene.num_agents):
             if i in egos:
                 continue
             v = Vehicle(self.road, scene.positions[i, t].copy(), float(scene.yaws[i, t]), 0.0)
             v.LENGTH, v.WIDTH = (float(x) for x in scene.extents[i])
-            self._others[i] = v
+            self.traffic[i] = v
         self._sync_road()
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
@@ -411,15 +414,13 @@ class CounterSceneEnv(AbstractEnv):
         viewer): the egos and every agent present now."""
         state = self.loop.state(0)
         present = []
-        adversaries = {a for a in self.loop.episodes[0].adversaries if a is not None}
-        for i, v in self._others.items():
+        for i, v in self.traffic.items():
             if not state.valid[i]:
                 continue
             v.position = np.array(state.positions[i], dtype=np.float64)
             v.heading, v.speed = float(state.yaws[i]), float(state.speeds[i])
             if self._needs_lanes:
                 v.on_state_update()  # its lane, for lane-based features (costly on big maps)
-            v.color = ADVERSARY_COLOR if i in adversaries else TRAFFIC_COLOR
             present.append(v)
         self.road.vehicles = [*self.controlled_vehicles, *present]
 
@@ -531,21 +532,8 @@ class CounterSceneEnv(AbstractEnv):
         return None
 
 
-#: Vehicle colours of the viewer (RGB): the adversary, other world-model traffic.
-ADVERSARY_COLOR = (200, 40, 220)
-TRAFFIC_COLOR = (100, 200, 255)
-
-
 def _sim_settings(config: Mapping) -> dict:
-    return {
-        "duration": config["duration"],
-        "replan_every": config["replan_every"],
-        "num_samples": config["num_samples"],
-        "selector": config["selector"],
-        "selection_source": config["selection_source"],
-        "strict_gates": config["strict_gates"],
-        "guidance": config["guidance"],
-    }
+    return {key: config[key] for key in SIM_KEYS}
 
 
 def check_action(space: spaces.Space, action: Any, who: str = "action") -> None:
