@@ -291,3 +291,18 @@ def test_shipped_default_model(generated):
     result = evaluate_model(named, list(generated.values()), num_samples=2, seed=0)
     ours, cv = result["model"]["ade"]["3s"], result["constant_velocity"]["ade"]["3s"]
     assert ours < 0.75 * cv, f"shipped model ADE@3s {ours:.2f} m vs constant velocity {cv:.2f} m"
+
+
+def test_checkpoint_without_the_agent_centric_map_key_loads_as_before(tmp_path):
+    """Checkpoints written before ``local_lanes`` existed have no such key: they load with
+    the scene-frame map alone and predict as they did."""
+    model = _model(TINY.replace(local_lanes=0))
+    out = save_model(model, tmp_path / "old", preset="default")
+    _edit_config(out, lambda m: [m["architecture"].pop(k) for k in ("local_lanes", "local_radius")])
+    loaded = load_model(out)
+    assert loaded.config.local_lanes == 0
+    batch = _batch(model)
+    with torch.no_grad():
+        a = model.sample(batch, 1, torch.Generator().manual_seed(0)).trajectory
+        b = loaded.sample(batch, 1, torch.Generator().manual_seed(0)).trajectory
+    torch.testing.assert_close(a, b, rtol=0, atol=0)

@@ -360,3 +360,49 @@ def test_learning_rate_schedule():
     assert learning_rate(decay, 59) == 1e-3
     assert learning_rate(decay, 80) == pytest.approx(1e-3 * (1 - 0.9 * 0.5))
     assert learning_rate(decay, 100) == pytest.approx(1e-4)
+
+
+def test_local_map_is_each_agents_nearest_lanes_in_its_own_frame():
+    model = _model(TINY.replace(local_lanes=2, local_radius=30.0))
+    # Lane 0 runs north along x = 10, lane 1 is 100 m away, lane 2 is padding.
+    lanes = torch.tensor(
+        [[[10.0, 0.0], [10.0, 5.0], [10.0, 10.0]], [[110.0, 0.0], [110.0, 5.0], [110.0, 10.0]]]
+    )
+    lanes = torch.cat([lanes, torch.zeros(1, 3, 2)])[None]  # [1, 3, 3, 2]
+    direction = torch.tensor([0.0, 1.0]).expand(1, 3, 3, 2)
+    width = torch.full((1, 3, 3, 1), 4.0)
+    lanes_ok = torch.tensor([[True, True, False]])
+    # Agent 0 stands 5 m south of the lane's start, heading north; agent 1 is padding.
+    position = torch.tensor([[[10.0, -5.0], [0.0, 0.0]]])
+    course = torch.tensor([[np.pi / 2, 0.0]])
+    valid = torch.tensor([[True, False]])
+    feat, ok = model.local_map(lanes, direction, width, lanes_ok, position, course, valid)
+    assert feat.shape == (1, 2, 2, 3, 5)
+    # Nearest first: lane 0, then lane 1, which is beyond local_radius.
+    assert ok.tolist() == [[[True, False], [False, False]]]
+    scale = 20.0  # POSITION_SCALE
+    ahead = torch.tensor([[5.0, 0.0], [10.0, 0.0], [15.0, 0.0]]) / scale
+    torch.testing.assert_close(feat[0, 0, 0, :, :2], ahead)  # straight ahead along its x axis
+    torch.testing.assert_close(feat[0, 0, 0, :, 2:4], torch.tensor([1.0, 0.0]).expand(3, 2))
+    torch.testing.assert_close(feat[0, 0, 0, :, 4], torch.ones(3))  # 4 m / 4 m
+    assert not feat[0, 1].any() and not feat[0, 0, 1].any()  # masked entries carry zeros
+
+
+def test_agent_centric_map_starts_silent_and_then_steers(scene_batch):
+    """Its output projections start at zero, so a model with the agent-centric map predicts
+    exactly what the same weights without it predict (the basis of fine-tuning an older
+    checkpoint); once they are non-zero the agent-centric lanes change the prediction."""
+    plain = _model(TINY.replace(local_lanes=0))
+    local = WorldModel(TINY.replace(local_lanes=4)).eval()
+    missing, unexpected = local.load_state_dict(plain.state_dict(), strict=False)
+    assert not unexpected and missing and all(".local" in k for k in missing)
+
+    def sample(m):
+        with torch.no_grad():
+            return m.sample(scene_batch, 2, torch.Generator().manual_seed(3)).trajectory
+
+    torch.testing.assert_close(sample(local), sample(plain), rtol=0, atol=0)
+    with torch.no_grad():
+        for block in local.denoiser.blocks:
+            block.local.out.weight.normal_(0.0, 0.5, generator=torch.Generator().manual_seed(1))
+    assert not torch.allclose(sample(local), sample(plain))

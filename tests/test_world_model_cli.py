@@ -208,3 +208,24 @@ def test_init_starts_from_a_model_and_refuses_another_architecture(
         == 1
     )
     assert "another architecture" in capsys.readouterr().err
+
+
+def test_init_adds_the_agent_centric_map_but_never_drops_it(dataset, tmp_path, capsys):
+    plain = tmp_path / "plain"
+    assert _train(dataset, plain, 2, "--set", "local_lanes=0") == 0
+    # A model without the agent-centric map seeds one with it: every old tensor carries over
+    # and the new output projections start at zero.
+    fine = tmp_path / "fine"
+    assert _train(dataset, fine, 2, "--init", str(plain), "--lr", "0") == 0
+    start, model = load_model(plain), load_model(fine)
+    assert start.config.local_lanes == 0 and model.config.local_lanes > 0
+    assert model.training_info["init"] == str(plain)  # the provenance names the start
+    assert model.training_info["init_training"]["steps"] == 2
+    new = model.state_dict()
+    for name, tensor in start.state_dict().items():
+        assert torch.equal(tensor, new[name]), name
+    assert all(not new[f"denoiser.blocks.{i}.local.out.weight"].any() for i in range(1))
+    # The other way round would throw trained weights away: refused.
+    capsys.readouterr()
+    assert _train(dataset, tmp_path / "back", 2, "--init", str(fine), "--set", "local_lanes=0") == 1
+    assert "another architecture" in capsys.readouterr().err

@@ -31,6 +31,12 @@ class ModelConfig:
         lane_points: points per lane segment.
         lane_segment_length: length of a lane segment [m].
         map_radius: lane segments farther than this from the ego are left out [m].
+        local_lanes: per agent, this many (at most ``num_lanes``) of the lane segments nearest
+            to it, expressed in its own frame (position and course at "now"), form a second,
+            agent-centric map that the agent's tokens attend to in every block; 0 disables it
+            (the scene-frame map alone, as checkpoints without the key have it).
+        local_radius: lane segments farther than this from the agent are masked out of its
+            agent-centric map [m].
         d_model: token width.
         num_heads: attention heads (must divide ``d_model``).
         num_blocks: blocks of (temporal, social, map) attention + MLP.
@@ -67,6 +73,8 @@ class ModelConfig:
     lane_points: int = 10
     lane_segment_length: float = 20.0
     map_radius: float = 60.0
+    local_lanes: int = 0
+    local_radius: float = 30.0
     d_model: int = 96
     num_heads: int = 4
     num_blocks: int = 3
@@ -108,6 +116,10 @@ class ModelConfig:
             (
                 self.num_lanes >= 1 and self.lane_points >= 2,
                 "need num_lanes >= 1, lane_points >= 2",
+            ),
+            (
+                self.local_lanes >= 0 and self.local_radius > 0,
+                "need local_lanes >= 0 and local_radius > 0",
             ),
             (self.d_model >= 2 and self.mlp_ratio >= 1, "need d_model >= 2 and mlp_ratio >= 1"),
             (
@@ -162,7 +174,7 @@ class ModelConfig:
 
 PRESETS: dict[str, ModelConfig] = {
     # CPU default: every number here was measured (docs/world_model.md, `counterscene bench`).
-    "default": ModelConfig(),
+    "default": ModelConfig(local_lanes=10),
     # The paper's reference constants (hyper-parameter table of the CounterScene paper).
     "paper": ModelConfig(
         history_stride=1,
@@ -173,6 +185,7 @@ PRESETS: dict[str, ModelConfig] = {
         num_blocks=4,
         sampler="ddpm",
         sampling_steps=100,
+        local_lanes=10,
     ),
 }
 

@@ -11,7 +11,13 @@ state and size) and the diffusion-step embedding. Each block then applies, pre-n
    and padding agents masked as keys (an agent always sees itself, so no row is empty);
 3. cross-attention from every agent token to the lane-polyline tokens (plus one learned "no map"
    token, so a scene without lanes is still well defined);
-4. an MLP.
+4. with ``local_lanes > 0``, cross-attention from each agent's tokens to its own agent-centric
+   map: the lane segments nearest to it, in its own frame (plus a "no map" token). Lane
+   following is a function of where the lanes are *relative to the agent*; in the scene frame
+   the network has to learn that transformation for every agent, which the small CPU model did
+   poorly at turns (off-road predictions, docs/world_model.md). Its output projection starts at
+   zero, so a model fine-tuned from a checkpoint without it starts out identical to that one;
+5. an MLP.
 
 The head maps each future token to the network output ``[B, K, Ta, 2]``: clean normalised
 actions (x0) or the noise (epsilon).
@@ -46,6 +52,9 @@ class Context:
         social_bias: ``[B, 1, heads, K, K]`` CIG log-gate plus the padding mask.
         map_tokens: ``[B, M + 1, d]`` lane tokens and the "no map" token.
         map_bias: ``[B, 1, 1, M + 1]`` additive key mask of the map attention.
+        local_tokens: ``[B, K, Ml + 1, d]`` each agent's agent-centric lane tokens and the "no
+            map" token (None without ``local_lanes``).
+        local_bias: ``[B, K, 1, 1, Ml + 1]`` additive key mask of the agent-centric map.
     """
 
     history: torch.Tensor
@@ -54,10 +63,14 @@ class Context:
     social_bias: torch.Tensor
     map_tokens: torch.Tensor
     map_bias: torch.Tensor
+    local_tokens: torch.Tensor | None = None
+    local_bias: torch.Tensor | None = None
 
     def repeat(self, n: int) -> Context:
         """Each scene ``n`` times in a row (for ``n`` samples in one batched call)."""
-        return Context(*(t.repeat_interleave(n, dim=0) for t in vars(self).values()))
+        return Context(
+            *(None if t is None else t.repeat_interleave(n, dim=0) for t in vars(self).values())
+        )
 
 
 class Attention(nn.Module):
@@ -90,7 +103,8 @@ class Attention(nn.Module):
 
 
 class Block(nn.Module):
-    """Temporal, social and map attention, then an MLP (pre-norm, residual)."""
+    """Temporal, social, map and (optionally) agent-centric map attention, then an MLP
+    (pre-norm, residual)."""
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
@@ -99,6 +113,11 @@ class Block(nn.Module):
         self.temporal = Attention(d, h, p)
         self.social = Attention(d, h, p)
         self.map = Attention(d, h, p)
+        if cfg.local_lanes:
+            self.local_norm = nn.LayerNorm(d)
+            self.local = Attention(d, h, p)
+            nn.init.zeros_(self.local.out.weight)
+            nn.init.zeros_(self.local.out.bias)
         self.mlp = nn.Sequential(
             nn.Linear(d, cfg.mlp_ratio * d),
             nn.GELU(),
@@ -115,6 +134,8 @@ class Block(nn.Module):
         x = x + self.social(y, y, ctx.social_bias).transpose(1, 2)
         y = self.norms[2](x).reshape(B, K * L, d)
         x = x + self.map(y, ctx.map_tokens, ctx.map_bias).reshape(B, K, L, d)
+        if ctx.local_tokens is not None:  # each agent's L tokens attend to its own lanes
+            x = x + self.local(self.local_norm(x), ctx.local_tokens, ctx.local_bias)
         return x + self.mlp(self.norms[3](x))
 
 
@@ -145,6 +166,10 @@ class Denoiser(nn.Module):
         self.point_in = _mlp(MAP_FEATURES, d, d)
         self.lane_out = _mlp(d, d, d)
         self.no_map = nn.Parameter(torch.zeros(1, 1, d))
+        if cfg.local_lanes:
+            self.local_point_in = _mlp(MAP_FEATURES, d, d)
+            self.local_lane_out = _mlp(d, d, d)
+            self.local_no_map = nn.Parameter(torch.zeros(1, 1, 1, d))
         self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.num_blocks))
         self.norm_out = nn.LayerNorm(d)
         self.head = nn.Linear(d, 2)
@@ -171,6 +196,8 @@ class Denoiser(nn.Module):
         lanes_valid: torch.Tensor,
         graph_dropout: float = 0.0,
         generator: torch.Generator | None = None,
+        local_lanes: torch.Tensor | None = None,
+        local_valid: torch.Tensor | None = None,
     ) -> Context:
         """Embed everything that does not depend on the diffusion step.
 
@@ -184,6 +211,9 @@ class Denoiser(nn.Module):
             lanes_valid: ``[B, M]`` bool.
             graph_dropout: probability of dropping each edge's bias (training only).
             generator: randomness of the graph dropout.
+            local_lanes: ``[B, K, Ml, P, 5]`` each agent's nearest lane segments in its own
+                frame (required when ``local_lanes > 0``).
+            local_valid: ``[B, K, Ml]`` bool.
         """
         cfg = self.cfg
         B, K, Hh, _ = history.shape
@@ -213,7 +243,15 @@ class Denoiser(nn.Module):
         tokens = torch.cat([self.lane_out(points), self.no_map.expand(B, 1, -1)], dim=1)
         map_ok = torch.cat([lanes_valid, lanes_valid.new_ones(B, 1)], dim=1)
         map_bias = torch.where(map_ok, 0.0, NEG)[:, None, None, :]
-        return Context(hist, agent_emb, temporal, social, tokens, map_bias)
+        if not cfg.local_lanes:
+            return Context(hist, agent_emb, temporal, social, tokens, map_bias)
+        if local_lanes is None or local_valid is None:
+            raise ValueError("this model needs local_lanes and local_valid")
+        local = self.local_lane_out(self.local_point_in(local_lanes).amax(dim=-2))
+        local = torch.cat([local, self.local_no_map.expand(B, K, 1, -1)], dim=2)
+        local_ok = torch.cat([local_valid, local_valid.new_ones(B, K, 1)], dim=2)
+        local_bias = torch.where(local_ok, 0.0, NEG)[:, :, None, None, :]
+        return Context(hist, agent_emb, temporal, social, tokens, map_bias, local, local_bias)
 
     def forward(
         self, noisy_actions: torch.Tensor, timesteps: torch.Tensor, ctx: Context

@@ -240,9 +240,73 @@ class WorldModel(nn.Module):
         width = batch["map_widths"][..., None, None].expand(*lanes.shape[:-1], 1)
         lfeat = torch.cat([lanes / POSITION_SCALE, direction, width / LANE_WIDTH_SCALE], -1)
         lfeat = torch.where(lanes_ok[..., None, None], lfeat, 0.0)
-        return self.denoiser.encode_context(
-            hfeat, hist_ok, afeat, valid, edges, lfeat, lanes_ok, graph_dropout, generator
+        local, local_ok = (
+            self.local_map(lanes, direction, width, lanes_ok, now[..., :2], course, valid)
+            if c.local_lanes
+            else (None, None)
         )
+        return self.denoiser.encode_context(
+            hfeat,
+            hist_ok,
+            afeat,
+            valid,
+            edges,
+            lfeat,
+            lanes_ok,
+            graph_dropout,
+            generator,
+            local,
+            local_ok,
+        )
+
+    def local_map(
+        self,
+        lanes: torch.Tensor,
+        direction: torch.Tensor,
+        width: torch.Tensor,
+        lanes_ok: torch.Tensor,
+        position: torch.Tensor,
+        course: torch.Tensor,
+        valid: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each agent's agent-centric map: its ``Ml = min(local_lanes, M)`` nearest lane
+        segments in its own frame (origin at its position, x along its course).
+
+        Args:
+            lanes: ``[B, M, P, 2]`` lane points [m] (ego frame).
+            direction: ``[B, M, P, 2]`` unit tangents.
+            width: ``[B, M, P, 1]`` lane widths [m].
+            lanes_ok: ``[B, M]`` bool.
+            position: ``[B, K, 2]`` agents at "now" [m]; ``course``: ``[B, K]`` rad.
+            valid: ``[B, K]`` bool.
+
+        Returns:
+            ``[B, K, Ml, P, 5]`` features (x, y [/20 m], tangent, width [/4 m]) and the
+            ``[B, K, Ml]`` mask: a real lane within ``local_radius`` of a valid agent.
+        """
+        c = self.config
+        B, K = position.shape[:2]
+        gap = (lanes[:, None] - position[:, :, None, None, :]).norm(dim=-1).amin(-1)  # [B, K, M]
+        gap = torch.where(lanes_ok[:, None, :], gap, torch.inf)
+        Ml = min(c.local_lanes, gap.shape[-1])
+        near, idx = gap.topk(Ml, dim=-1, largest=False)  # [B, K, Ml]
+
+        def pick(t: torch.Tensor) -> torch.Tensor:  # [B, M, P, C] -> [B, K, Ml, P, C]
+            flat = idx.reshape(B, -1)[..., None, None].expand(-1, -1, *t.shape[2:])
+            return t.gather(1, flat).reshape(B, K, Ml, *t.shape[2:])
+
+        cos, sin = torch.cos(course)[..., None, None], torch.sin(course)[..., None, None]
+
+        def rotate(v: torch.Tensor) -> torch.Tensor:  # world -> agent frame, [B, K, Ml, P, 2]
+            x, y = v.unbind(-1)
+            return torch.stack([cos * x + sin * y, -sin * x + cos * y], -1)
+
+        rel = rotate(pick(lanes) - position[:, :, None, None, :])
+        feat = torch.cat(
+            [rel / POSITION_SCALE, rotate(pick(direction)), pick(width) / LANE_WIDTH_SCALE], -1
+        )
+        ok = (near <= c.local_radius) & valid[..., None]
+        return torch.where(ok[..., None, None], feat, 0.0), ok
 
     # ------------------------------------------------------------------ training
     def loss(

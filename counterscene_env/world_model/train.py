@@ -190,14 +190,22 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         from counterscene_env.world_model.checkpoint import load_model
 
         start = load_model(cfg.init)
-        if start.config != model_cfg:
+        # A model without the agent-centric map may seed one with it: the new modules start
+        # at zero output, so the fine-tune starts from the initial model's exact predictions.
+        adds_local = start.config.local_lanes == 0 and model_cfg.local_lanes > 0
+        same = start.config.replace(
+            local_lanes=model_cfg.local_lanes, local_radius=model_cfg.local_radius
+        )
+        if (same if adds_local else start.config) != model_cfg:
             raise ValueError(
                 f"--init model {cfg.init!r} has another architecture than preset "
                 f"{cfg.preset!r} with the given overrides"
             )
         normalization = normalization or start.normalization
         model = WorldModel(model_cfg, normalization).to(device)
-        model.load_state_dict(start.state_dict())
+        missing, unexpected = model.load_state_dict(start.state_dict(), strict=not adds_local)
+        if unexpected or any(".local" not in k for k in missing):
+            raise ValueError(f"--init model {cfg.init!r}: tensors do not match the new model")
     else:
         model = WorldModel(model_cfg, normalization).to(device)
     ema = copy.deepcopy(model).eval()
@@ -228,6 +236,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         + (f", {torch.cuda.get_device_name(device)}" if device.type == "cuda" else ""),
         "torch": torch.__version__,
     }
+    if cfg.init is not None:  # provenance of a fine-tune: where it started
+        info.update(init=cfg.init, init_training=dict(start.training_info))
     bar = None
     if progress:
         from tqdm import tqdm
