@@ -264,6 +264,11 @@ def _parser() -> argparse.ArgumentParser:
         help="the paper's selection (no strict gates: parked or far adversaries allowed)",
     )
     st.add_argument(
+        "--no-yield",
+        action="store_true",
+        help="traffic follows its plans to the letter (no yielding rule; closed_loop.md)",
+    )
+    st.add_argument(
         "--batch",
         type=int,
         default=4,
@@ -323,6 +328,7 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         selection_source=args.source,
         strict_gates=not args.paper_gates,
         guidance=args.guidance,
+        traffic_yields=not args.no_yield,
     )
     config = StressConfig(
         scenario=args.scenario,

@@ -48,7 +48,7 @@ import torch
 from highway_env.road.road import Road
 from highway_env.vehicle.kinematics import Vehicle
 
-from counterscene_env import geometry
+from counterscene_env import geometry, yielding
 from counterscene_env.adversary.guidance import (
     GuidanceConfig,
     guidance_preset,
@@ -68,8 +68,9 @@ from counterscene_env.world_model.realism import plan_cost
 HARD_BRAKE = -3.0
 #: How an agent moved into a step (``ClosedLoop.motion_source``): absent or history, its
 #: world-model plan, its log (never planned, or just entered), constant velocity (plan ran
-#: out), the ego's policy, highway-env's IDM (left the model's view).
-MOTION_SOURCES = ("none", "plan", "log", "coast", "ego", "idm")
+#: out), the ego's policy, highway-env's IDM (left the model's view), and held back by the
+#: yielding rule on its plan's, log's or IDM's path (:mod:`counterscene_env.yielding`).
+MOTION_SOURCES = ("none", "plan", "log", "coast", "ego", "idm", "yield")
 #: Horizon of the per-step TTC, s.
 TTC_HORIZON = 5.0
 
@@ -99,6 +100,9 @@ class SimConfig:
         cover_radius: an agent is planned from a model window only if it is within this many
             metres of the window's centre [m]; farther agents get windows of their own.
         max_windows: model windows per episode and replan (the ego's plus extra ones).
+        traffic_yields: ordinary traffic slows along its planned path rather than drive into
+            another agent's box (:mod:`counterscene_env.yielding`); egos and a guided
+            adversary never yield. False: every plan is followed to the letter.
     """
 
     duration: float = 10.0
@@ -115,6 +119,7 @@ class SimConfig:
     realism_weight: float = 1.0
     cover_radius: float = 25.0
     max_windows: int = 1
+    traffic_yields: bool = True
 
     def __post_init__(self) -> None:
         if not self.duration > 0:
@@ -187,6 +192,7 @@ class _Episode:
     plan_speeds: np.ndarray  # [N, F]
     plan_start: np.ndarray  # [N] step of plan index 0
     planned: np.ndarray  # [N] bool
+    progress: np.ndarray  # [N] m along the current path (plan's or log's); NaN: not started
     replans: int = 0
     replan_seconds: float = 0.0  # this episode's share of the batched replan calls
     records: list[list[dict]] = field(default_factory=list)  # per step, one info per ego
@@ -328,6 +334,7 @@ class ClosedLoop:
             plan_speeds=np.zeros((N, F)),
             plan_start=np.zeros(N, np.int64),
             planned=np.zeros(N, bool),
+            progress=np.full(N, np.nan),
         )
         # The adversary is selected (and kept in the model's window) with guidance off too, so
         # an unguided run reports the same agent's collisions and clearance as a guided one.
@@ -599,6 +606,7 @@ class ClosedLoop:
             ep.plan_speeds[rows] = chosen[..., 3]
             ep.plan_start[rows] = ep.t + 1
             ep.planned[rows] = True
+            ep.progress[rows] = 0.0
 
         # Agents the model planned before but no longer sees (they left its window) continue
         # as highway-env IDM lane followers rather than on a stale open-loop plan; an agent
@@ -614,7 +622,7 @@ class ClosedLoop:
             for r in np.flatnonzero(ep.planned & ep.valid[:, ep.t]):
                 r = int(r)
                 if r not in now and r not in ep.background and r not in ep.egos:
-                    idm = IDMPlanner()
+                    idm = IDMPlanner(yield_to_traffic=True)
                     idm.reset(ep.factual, int(ep.rng.integers(2**31)), agent=r, t=ep.t)
                     ep.background[r] = idm
         for ep in eps:
@@ -691,6 +699,8 @@ class ClosedLoop:
         ep.positions[i, t1] = log.positions[i, t1]
         ep.yaws[i, t1] = log.yaws[i, t1]
         ep.speeds[i, t1] = log.speeds[i, t1]
+        ep.progress[entered] = np.nan
+        held = self._yield(ep, on_plan, k, replay & ~entered, idm)
         i = np.flatnonzero(coast)
         heading = np.stack([np.cos(ep.yaws[i, t]), np.sin(ep.yaws[i, t])], -1)
         ep.positions[i, t1] = ep.positions[i, t] + log.dt * ep.speeds[i, t, None] * heading
@@ -698,6 +708,7 @@ class ClosedLoop:
         ep.speeds[i, t1] = ep.speeds[i, t]
         ep.valid[:, t1] = present
         ep.source[:, t1] = np.select([on_plan, replay, coast, idm], [1, 2, 3, 5], 0)
+        ep.source[held, t1] = 6
         ep.source[egos, t1] = 4
 
         # The egos: the policy's action through highway-env's bicycle, or a written state.
@@ -712,6 +723,109 @@ class ClosedLoop:
             ep.yaws[e, t1] = v.heading
             ep.speeds[e, t1] = v.speed
         ep.t = t1
+
+    def _yield(
+        self, ep: _Episode, on_plan: np.ndarray, k: np.ndarray, replay: np.ndarray, idm: np.ndarray
+    ) -> list[int]:
+        """Hold back, along their paths, the agents whose next step would run into another
+        agent's current box (:mod:`counterscene_env.yielding`). The path is the plan's, the
+        log's for a replaying agent, and the straight line through its next point for an IDM
+        one. Rows free to advance keep their exact point. Returns the rows held back."""
+        t, t1, dt = ep.t, ep.t + 1, ep.factual.dt
+        log = ep.factual
+        exempt = set(ep.egos)
+        if self.guidance.enabled:
+            exempt.update(a for a in ep.adversaries if a is not None)
+        here = np.flatnonzero(ep.valid[:, t])
+        xy, yaw, speed = ep.positions[here, t], ep.yaws[here, t], ep.speeds[here, t]
+        velocity = speed[:, None] * np.stack([np.cos(yaw), np.sin(yaw)], -1)
+        extents = log.extents[here]
+        held = []
+        movers = np.flatnonzero((on_plan | replay | idm) & ep.valid[:, t])
+        # Rows whose next pose is final: written already and not subject to yielding (a guided
+        # adversary, an entering car), then each yielding row once it is done.
+        settled = (on_plan | replay | idm) & ep.valid[:, t1]
+        settled[movers] = False
+        settled[ep.egos] = False
+        for r in movers:
+            if idm[r]:
+                # IDM's next point, then straight on for as far as it could need to stop in.
+                here_xy, next_xy = ep.positions[r, t], ep.positions[r, t1]
+                reach = ep.speeds[r, t1] ** 2 / (2 * yielding.BRAKE) + 5.0
+                ahead = np.arange(0.5, reach, 0.5)[:, None]
+                course = np.array([math.cos(ep.yaws[r, t1]), math.sin(ep.yaws[r, t1])])
+                path = np.concatenate([here_xy[None], next_xy[None], next_xy + ahead * course])
+                path_yaw = np.concatenate(
+                    [[ep.yaws[r, t]], np.full(len(ahead) + 1, ep.yaws[r, t1])]
+                )
+                due = 1
+                ep.progress[r] = 0.0
+            elif on_plan[r]:
+                start = ep.plan_start[r] - 1  # the step the plan was made from
+                path = np.concatenate([ep.positions[r, start][None], ep.plan_positions[r]])
+                path_yaw = np.concatenate([[ep.yaws[r, start]], ep.plan_yaws[r]])
+                due = int(k[r]) + 1  # path index scheduled for t1
+            else:
+                first, last = _valid_run(log.valid[r], t1)  # the log's path around t1
+                path, path_yaw = log.positions[r, first:last], log.yaws[r, first:last]
+                due = t1 - first
+            arc = yielding.path_arc_length(path)
+            done = ep.progress[r]
+            if np.isnan(done):
+                done = arc[due - 1]  # a log row's first step: on schedule
+            if r in exempt or not self.config.traffic_yields:
+                ep.progress[r] = arc[due]
+                settled[r] = True
+                continue
+            lagging = done < arc[due - 1] - 1e-6 and not idm[r]  # IDM keeps its own speed
+            ahead = np.flatnonzero(arc > done)
+            stations = np.concatenate([ep.positions[r, t][None], path[ahead]])
+            station_yaw = np.concatenate([[ep.yaws[r, t]], path_yaw[ahead]])
+            station_arc = np.concatenate([[0.0], arc[ahead] - done])
+            other = here != r
+            d_free, v_lead = yielding.free_distance(
+                stations,
+                station_yaw,
+                station_arc,
+                log.extents[r],
+                xy[other],
+                yaw[other],
+                extents[other],
+                velocity[other],
+            )
+            desired = arc[due] - arc[due - 1]
+            step = yielding.allowed_advance(
+                d_free, v_lead, float(ep.speeds[r, t]), desired, dt, lagging
+            )
+            on_time = not lagging and step >= desired - 1e-9
+            if on_time:  # the plan's (or log's, or IDM's) point, already written
+                now_done, pose = arc[due], (ep.positions[r, t1].copy(), float(ep.yaws[r, t1]))
+            else:
+                now_done = min(done + step, arc[-1])
+                pose = yielding.point_at(path, path_yaw, arc, now_done)
+            # The last guard: never end a step inside a box we were clear of, where the others
+            # are now or (those settled) will be; a plan may also turn a car on the spot,
+            # which sweeps its corners without moving along the path.
+            then = np.flatnonzero(settled)
+            if yielding.moves_into(
+                pose,
+                (ep.positions[r, t], ep.yaws[r, t]),
+                log.extents[r],
+                np.concatenate([xy[other], ep.positions[then, t1]]),
+                np.concatenate([yaw[other], ep.yaws[then, t1]]),
+                np.concatenate([extents[other], log.extents[then]]),
+            ):
+                on_time, now_done = False, done
+                pose = (ep.positions[r, t].copy(), float(ep.yaws[r, t]))
+            settled[r] = True
+            if on_time:
+                ep.progress[r] = now_done
+                continue
+            ep.positions[r, t1], ep.yaws[r, t1] = pose
+            ep.speeds[r, t1] = (now_done - done) / dt
+            ep.progress[r] = now_done
+            held.append(int(r))
+        return held
 
     # ------------------------------------------------------------------ per-step info
     def _info(self, ep: _Episode, k: int, replanned: bool) -> dict:
@@ -831,6 +945,14 @@ def _window_row(rows: np.ndarray, agent: int | None) -> int:
         return -1
     hit = np.flatnonzero(rows == agent)
     return int(hit[0]) if hit.size else -1
+
+
+def _valid_run(valid: np.ndarray, t: int) -> tuple[int, int]:
+    """``[first, last)``: the run of consecutive valid steps of ``valid`` ``[T]`` around ``t``."""
+    gaps = np.flatnonzero(~valid)
+    first = int(gaps[gaps < t].max(initial=-1)) + 1
+    last = int(gaps[gaps > t].min(initial=len(valid)))
+    return first, last
 
 
 def _to_world(xy: np.ndarray, yaw: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 from conftest import make_scene
 
 from counterscene_env.scene.dataset import make_window
-from counterscene_env.sim import ClosedLoop, SimConfig
+from counterscene_env.sim import MOTION_SOURCES, ClosedLoop, SimConfig
 from counterscene_env.world_model.checkpoint import load_model
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -218,3 +219,36 @@ def test_several_egos_each_follow_their_actions_with_their_own_adversary(model, 
     adversaries = [i["adversary"] for i in infos if i["adversary"] is not None]
     assert not ids & set(adversaries)
     assert len(adversaries) == len(set(adversaries))
+
+
+def rear_scene(T=90, c=30):
+    """Ego east on y = 0 at 3 m/s from x = 60; row 1 follows in the same lane at 10 m/s from
+    x = 30 and, in the log, drives straight through it (a planted rear-end conflict)."""
+    t = np.arange(T) * 0.1 - c * 0.1
+    ego = np.stack([60 + 3.0 * t, np.zeros(T)], -1)
+    follower = np.stack([30 + 10.0 * t, np.zeros(T)], -1)
+    speeds = np.array([np.full(T, 3.0), np.full(T, 10.0)])
+    return make_scene(np.stack([ego, follower]), speeds=speeds, current_index=c)
+
+
+@pytest.mark.parametrize("guidance", ["none", "full"])
+def test_traffic_yields_to_the_ego_but_a_guided_adversary_does_not(model, guidance):
+    def gap_and_held(**kw):
+        config = SimConfig(duration=5.0, num_samples=2, strict_gates=False, guidance=guidance)
+        loop = ClosedLoop(model, dataclasses.replace(config, **kw))
+        infos = loop.reset([rear_scene()], [0])
+        assert infos[0]["adversary"] == "a1" and infos[0]["conflict_type"] == "rear_approach"
+        while not loop.done.all():
+            loop.step(np.zeros((1, 2)))  # the ego keeps its 3 m/s
+        sim, held = loop.scene(0), loop.motion_source(0)[1] == MOTION_SOURCES.index("yield")
+        gap = np.abs(sim.positions[0, 30:, 0] - sim.positions[1, 30:, 0]).min()
+        return gap, held.any()
+
+    gap, held = gap_and_held()
+    if guidance == "none":  # the selected agent is ordinary traffic: it brakes in time
+        assert held and gap > 4.5
+        # Followed to the letter, the world model's plans drive it into the ego (4 m boxes).
+        gap, held = gap_and_held(traffic_yields=False)
+        assert gap < 4.0 and not held
+    else:  # its safety margins are what the guidance removes: it never yields
+        assert not held and gap < 4.0

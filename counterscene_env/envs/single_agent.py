@@ -41,6 +41,7 @@ SIM_KEYS = (
     "selection_source",
     "strict_gates",
     "guidance",
+    "traffic_yields",
 )
 
 _MODELS: dict[str, Any] = {}
@@ -158,6 +159,7 @@ class CounterSceneEnv(AbstractEnv):
                 "guidance": "full",
                 "selection_source": "log",
                 "strict_gates": True,
+                "traffic_yields": True,
                 "num_samples": 4,
                 "replan_every": 5,  # [steps of 0.1 s]
                 "duration": 10.0,  # [s]
