@@ -269,6 +269,11 @@ def _parser() -> argparse.ArgumentParser:
         help="traffic follows its plans to the letter (no yielding rule; closed_loop.md)",
     )
     st.add_argument(
+        "--no-road-keeping",
+        action="store_true",
+        help="traffic may follow its plans off the road (no road keeping; closed_loop.md)",
+    )
+    st.add_argument(
         "--batch",
         type=int,
         default=4,
@@ -329,6 +334,7 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         strict_gates=not args.paper_gates,
         guidance=args.guidance,
         traffic_yields=not args.no_yield,
+        road_keeping=not args.no_road_keeping,
     )
     config = StressConfig(
         scenario=args.scenario,

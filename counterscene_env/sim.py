@@ -48,7 +48,7 @@ import torch
 from highway_env.road.road import Road
 from highway_env.vehicle.kinematics import Vehicle
 
-from counterscene_env import geometry, yielding
+from counterscene_env import geometry, road_keeping, yielding
 from counterscene_env.adversary.guidance import (
     GuidanceConfig,
     guidance_preset,
@@ -69,8 +69,9 @@ HARD_BRAKE = -3.0
 #: How an agent moved into a step (``ClosedLoop.motion_source``): absent or history, its
 #: world-model plan, its log (never planned, or just entered), constant velocity (plan ran
 #: out), the ego's policy, highway-env's IDM (left the model's view), and held back by the
-#: yielding rule on its plan's, log's or IDM's path (:mod:`counterscene_env.yielding`).
-MOTION_SOURCES = ("none", "plan", "log", "coast", "ego", "idm", "yield")
+#: yielding rule on its plan's, log's or IDM's path (:mod:`counterscene_env.yielding`), and
+#: kept on its lane by road keeping (:mod:`counterscene_env.road_keeping`).
+MOTION_SOURCES = ("none", "plan", "log", "coast", "ego", "idm", "yield", "keep")
 #: Horizon of the per-step TTC, s.
 TTC_HORIZON = 5.0
 
@@ -103,6 +104,9 @@ class SimConfig:
         traffic_yields: ordinary traffic slows along its planned path rather than drive into
             another agent's box (:mod:`counterscene_env.yielding`); egos and a guided
             adversary never yield. False: every plan is followed to the letter.
+        road_keeping: a step that would take an agent other than an ego off the road is
+            moved sideways onto its lane (:mod:`counterscene_env.road_keeping`). False: the
+            plans' own off-road steps stand.
     """
 
     duration: float = 10.0
@@ -120,6 +124,7 @@ class SimConfig:
     cover_radius: float = 25.0
     max_windows: int = 1
     traffic_yields: bool = True
+    road_keeping: bool = True
 
     def __post_init__(self) -> None:
         if not self.duration > 0:
@@ -184,6 +189,7 @@ class _Episode:
     egos: list[int]  # rows driven by external policies; egos[0] is factual.ego_index
     vehicles: list[Vehicle]  # one highway-env bicycle per ego
     segments: tuple[np.ndarray, np.ndarray]
+    pieces: tuple[np.ndarray, ...]  # lane centre pieces for road keeping
     generator: torch.Generator
     rng: np.random.Generator
     selections: list[Selection]  # one per ego
@@ -325,7 +331,8 @@ class ClosedLoop:
             source=np.zeros((N, end + 1), np.int8),
             egos=egos,
             vehicles=vehicles,
-            segments=lane_segments(scene, c.lane_segment_length, c.lane_points),
+            segments=(segments := lane_segments(scene, c.lane_segment_length, c.lane_points)),
+            pieces=road_keeping.lane_pieces(*segments),
             generator=torch.Generator().manual_seed(seed),
             rng=rng,
             selections=[Selection(self.config.selector, None, "not selected yet", 0)] * len(egos),
@@ -701,6 +708,7 @@ class ClosedLoop:
         ep.speeds[i, t1] = log.speeds[i, t1]
         ep.progress[entered] = np.nan
         held = self._yield(ep, on_plan, k, replay & ~entered, idm)
+        kept = self._keep_on_road(ep, (on_plan | replay | idm) & ep.valid[:, t])
         i = np.flatnonzero(coast)
         heading = np.stack([np.cos(ep.yaws[i, t]), np.sin(ep.yaws[i, t])], -1)
         ep.positions[i, t1] = ep.positions[i, t] + log.dt * ep.speeds[i, t, None] * heading
@@ -709,6 +717,7 @@ class ClosedLoop:
         ep.valid[:, t1] = present
         ep.source[:, t1] = np.select([on_plan, replay, coast, idm], [1, 2, 3, 5], 0)
         ep.source[held, t1] = 6
+        ep.source[kept, t1] = 7
         ep.source[egos, t1] = 4
 
         # The egos: the policy's action through highway-env's bicycle, or a written state.
@@ -731,6 +740,8 @@ class ClosedLoop:
         agent's current box (:mod:`counterscene_env.yielding`). The path is the plan's, the
         log's for a replaying agent, and the straight line through its next point for an IDM
         one. Rows free to advance keep their exact point. Returns the rows held back."""
+        if not self.config.traffic_yields:
+            return []
         t, t1, dt = ep.t, ep.t + 1, ep.factual.dt
         log = ep.factual
         exempt = set(ep.egos)
@@ -748,32 +759,12 @@ class ClosedLoop:
         settled[movers] = False
         settled[ep.egos] = False
         for r in movers:
-            if idm[r]:
-                # IDM's next point, then straight on for as far as it could need to stop in.
-                here_xy, next_xy = ep.positions[r, t], ep.positions[r, t1]
-                reach = ep.speeds[r, t1] ** 2 / (2 * yielding.BRAKE) + 5.0
-                ahead = np.arange(0.5, reach, 0.5)[:, None]
-                course = np.array([math.cos(ep.yaws[r, t1]), math.sin(ep.yaws[r, t1])])
-                path = np.concatenate([here_xy[None], next_xy[None], next_xy + ahead * course])
-                path_yaw = np.concatenate(
-                    [[ep.yaws[r, t]], np.full(len(ahead) + 1, ep.yaws[r, t1])]
-                )
-                due = 1
-                ep.progress[r] = 0.0
-            elif on_plan[r]:
-                start = ep.plan_start[r] - 1  # the step the plan was made from
-                path = np.concatenate([ep.positions[r, start][None], ep.plan_positions[r]])
-                path_yaw = np.concatenate([[ep.yaws[r, start]], ep.plan_yaws[r]])
-                due = int(k[r]) + 1  # path index scheduled for t1
-            else:
-                first, last = _valid_run(log.valid[r], t1)  # the log's path around t1
-                path, path_yaw = log.positions[r, first:last], log.yaws[r, first:last]
-                due = t1 - first
+            path, path_yaw, due = self._path(ep, int(r), bool(on_plan[r]), int(k[r]), bool(idm[r]))
             arc = yielding.path_arc_length(path)
             done = ep.progress[r]
             if np.isnan(done):
                 done = arc[due - 1]  # a log row's first step: on schedule
-            if r in exempt or not self.config.traffic_yields:
+            if r in exempt:
                 ep.progress[r] = arc[due]
                 settled[r] = True
                 continue
@@ -826,6 +817,75 @@ class ClosedLoop:
             ep.progress[r] = now_done
             held.append(int(r))
         return held
+
+    @staticmethod
+    def _path(
+        ep: _Episode, r: int, on_plan: bool, k: int, idm: bool
+    ) -> tuple[np.ndarray, np.ndarray, int]:
+        """Agent ``r``'s path for the yielding rule: points ``[P, 2]`` m, yaws ``[P]`` rad, and
+        the index of the point it is due at on step ``t + 1``."""
+        t, t1 = ep.t, ep.t + 1
+        if idm:
+            # IDM's next point, then straight on for as far as it could need to stop in.
+            now, then = ep.positions[r, t], ep.positions[r, t1]
+            reach = ep.speeds[r, t1] ** 2 / (2 * yielding.BRAKE) + 5.0
+            on = np.arange(0.5, reach, 0.5)[:, None]
+            course = np.array([math.cos(ep.yaws[r, t1]), math.sin(ep.yaws[r, t1])])
+            path = np.concatenate([now[None], then[None], then + on * course])
+            path_yaw = np.concatenate([[ep.yaws[r, t]], np.full(len(on) + 1, ep.yaws[r, t1])])
+            ep.progress[r] = 0.0  # a fresh path every step
+            return path, path_yaw, 1
+        if on_plan:
+            start = ep.plan_start[r] - 1  # the step the plan was made from
+            path = np.concatenate([ep.positions[r, start][None], ep.plan_positions[r]])
+            path_yaw = np.concatenate([[ep.yaws[r, start]], ep.plan_yaws[r]])
+            return path, path_yaw, k + 1
+        log = ep.factual
+        first, last = _valid_run(log.valid[r], t1)  # the log's path around t1
+        return log.positions[r, first:last], log.yaws[r, first:last], t1 - first
+
+    def _keep_on_road(self, ep: _Episode, movers: np.ndarray) -> list[int]:
+        """Move sideways onto their lanes the non-ego agents whose step would leave the road
+        (:mod:`counterscene_env.road_keeping`); returns the rows moved. A correction that
+        would put an agent into another's box stops it where it was instead."""
+        if not self.config.road_keeping:
+            return []
+        t, t1, log = ep.t, ep.t + 1, ep.factual
+        movers = movers.copy()
+        movers[ep.egos] = False
+        rows = np.flatnonzero(movers)
+        if not rows.size:
+            return []
+        area = log.road.drivable_area
+        leaving = geometry.points_in_area(area, ep.positions[rows, t]) & ~geometry.points_in_area(
+            area, ep.positions[rows, t1]
+        )
+        kept = []
+        for r in rows[leaving]:
+            here, there = ep.positions[r, t], ep.positions[r, t1]
+            step = there - here
+            course = math.atan2(step[1], step[0]) if step @ step > 1e-6 else ep.yaws[r, t1]
+            moved = road_keeping.keep_on_lane(there, course, ep.pieces)
+            if moved is None or not geometry.points_in_area(area, moved[None])[0]:
+                continue
+            step = moved - here
+            yaw = math.atan2(step[1], step[0]) if step @ step > 1e-4 else float(ep.yaws[r, t])
+            # Everyone else where they are now and where they will be (egos not yet moved).
+            others = np.flatnonzero(ep.valid[:, t] & (np.arange(log.num_agents) != r))
+            ahead = np.flatnonzero(movers & ep.valid[:, t1] & (np.arange(log.num_agents) != r))
+            if yielding.moves_into(
+                (moved, yaw),
+                (here, ep.yaws[r, t]),
+                log.extents[r],
+                np.concatenate([ep.positions[others, t], ep.positions[ahead, t1]]),
+                np.concatenate([ep.yaws[others, t], ep.yaws[ahead, t1]]),
+                np.concatenate([log.extents[others], log.extents[ahead]]),
+            ):
+                moved, yaw = here.copy(), float(ep.yaws[r, t])
+            ep.positions[r, t1], ep.yaws[r, t1] = moved, yaw
+            ep.speeds[r, t1] = float(np.linalg.norm(moved - here)) / log.dt
+            kept.append(int(r))
+        return kept
 
     # ------------------------------------------------------------------ per-step info
     def _info(self, ep: _Episode, k: int, replanned: bool) -> dict:

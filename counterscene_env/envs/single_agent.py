@@ -42,6 +42,7 @@ SIM_KEYS = (
     "strict_gates",
     "guidance",
     "traffic_yields",
+    "road_keeping",
 )
 
 _MODELS: dict[str, Any] = {}
@@ -160,6 +161,7 @@ class CounterSceneEnv(AbstractEnv):
                 "selection_source": "log",
                 "strict_gates": True,
                 "traffic_yields": True,
+                "road_keeping": True,
                 "num_samples": 4,
                 "replan_every": 5,  # [steps of 0.1 s]
                 "duration": 10.0,  # [s]
