@@ -773,6 +773,16 @@ class ClosedLoop:
             stations = np.concatenate([ep.positions[r, t][None], path[ahead]])
             station_yaw = np.concatenate([[ep.yaws[r, t]], path_yaw[ahead]])
             station_arc = np.concatenate([[0.0], arc[ahead] - done])
+            desired = arc[due] - arc[due - 1]
+            # Beyond the distance this step's speed needs to stop in, a car cannot change
+            # the answer (allowed_advance gives ``desired`` then): check the path up to there.
+            need = max(desired, (desired / dt) ** 2 / (2 * yielding.BRAKE))
+            cut = int(np.searchsorted(station_arc, need)) + 1
+            stations, station_yaw, station_arc = (
+                stations[:cut],
+                station_yaw[:cut],
+                station_arc[:cut],
+            )
             other = here != r
             d_free, v_lead = yielding.free_distance(
                 stations,
@@ -784,7 +794,6 @@ class ClosedLoop:
                 extents[other],
                 velocity[other],
             )
-            desired = arc[due] - arc[due - 1]
             step = yielding.allowed_advance(
                 d_free, v_lead, float(ep.speeds[r, t]), desired, dt, lagging
             )
