@@ -629,7 +629,7 @@ class ClosedLoop:
             for r in np.flatnonzero(ep.planned & ep.valid[:, ep.t]):
                 r = int(r)
                 if r not in now and r not in ep.background and r not in ep.egos:
-                    idm = IDMPlanner(yield_to_traffic=True)
+                    idm = IDMPlanner()
                     idm.reset(ep.factual, int(ep.rng.integers(2**31)), agent=r, t=ep.t)
                     ep.background[r] = idm
         for ep in eps:
