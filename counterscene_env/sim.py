@@ -25,6 +25,10 @@ world-model call (scenes are windows of a common agent count K, padded). Per epi
   log, and so does one that just entered; one the model planned before but no longer sees
   continues as a highway-env IDM lane follower (its stale open-loop plan would drift off the
   road); one whose plan ran out keeps its speed and course.
+- **Reflexes of the ordinary traffic** (not the egos). An agent about to run into another
+  brakes along its path instead (:mod:`counterscene_env.yielding`; a guided adversary never
+  does: its margins are what the guidance removes), and a step that would leave the road is
+  moved sideways onto the lane (:mod:`counterscene_env.road_keeping`).
 - **Every step records** ego collisions (oriented boxes), off-road, the ego's signed
   longitudinal acceleration and hard braking, the smallest constant-velocity TTC, and the
   adversary's distance; :meth:`ClosedLoop.scene` returns the simulated :class:`Scene` for
