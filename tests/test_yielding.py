@@ -16,33 +16,22 @@ def straight_path(length: float = 40.0, step: float = 0.5):
     return points, np.zeros(len(xs)), yielding.path_arc_length(points)
 
 
-def test_a_car_stopped_ahead_limits_the_free_distance_to_its_rear_minus_the_margin():
+def free_distance_to(centre, velocity=(0.0, 0.0)):
+    """free_distance along a straight eastbound path for a 4 m car facing one 4 m car."""
     points, yaws, arc = straight_path()
+    car = np.array([[4.0, 2.0]])
+    return yielding.free_distance(
+        points, yaws, arc, car[0], np.array([centre]), np.zeros(1), car, np.array([velocity])
+    )
+
+
+def test_a_car_stopped_ahead_limits_the_free_distance_to_its_rear_minus_the_margin():
     # A 4 m car parked with its centre 20 m ahead: its rear is at 18 m; our box, grown forward
     # by MARGIN[0] = 1 m, reaches 3 m ahead of our centre, so we may go to 15 m (a station).
-    d, v_lead = yielding.free_distance(
-        points,
-        yaws,
-        arc,
-        np.array([4.0, 2.0]),
-        np.array([[20.0, 0.0]]),
-        np.zeros(1),
-        np.array([[4.0, 2.0]]),
-        np.zeros((1, 2)),
-    )
+    d, v_lead = free_distance_to([20.0, 0.0])
     assert d == pytest.approx(15.0) and v_lead == 0.0
     # The same car in the next lane (4 m to the side) is no obstacle.
-    d, _ = yielding.free_distance(
-        points,
-        yaws,
-        arc,
-        np.array([4.0, 2.0]),
-        np.array([[20.0, 4.0]]),
-        np.zeros(1),
-        np.array([[4.0, 2.0]]),
-        np.zeros((1, 2)),
-    )
-    assert d == math.inf
+    assert free_distance_to([20.0, 4.0])[0] == math.inf
 
 
 def test_the_lead_cars_speed_counts_along_our_heading_only():
@@ -56,35 +45,16 @@ def test_the_lead_cars_speed_counts_along_our_heading_only():
     # A car crossing our path (velocity across it) gives no credit, and one coming towards us
     # gives none either.
     for velocity in ([0.0, 8.0], [-8.0, 0.0]):
-        _, v = yielding.free_distance(
-            points, yaws, arc, ext[0], ahead[:1], np.zeros(1), ext[:1], np.array([velocity])
-        )
-        assert v == 0.0
+        assert free_distance_to([20.0, 0.0], velocity)[1] == 0.0
 
 
 def test_a_car_within_the_margin_ahead_stops_us_and_one_behind_does_not():
-    points, yaws, arc = straight_path()
-    ext = np.array([[4.0, 2.0]])
     for x, expected in ((4.5, 0.0), (-4.5, math.inf)):  # 0.5 m gap ahead, then behind
-        d, _ = yielding.free_distance(
-            points, yaws, arc, ext[0], np.array([[x, 0.0]]), np.zeros(1), ext, np.zeros((1, 2))
-        )
-        assert d == expected
+        assert free_distance_to([x, 0.0])[0] == expected
 
 
 def test_a_car_already_overlapping_is_ignored_rather_than_freezing_us():
-    points, yaws, arc = straight_path()
-    d, _ = yielding.free_distance(
-        points,
-        yaws,
-        arc,
-        np.array([4.0, 2.0]),
-        np.array([[1.0, 0.5]]),
-        np.zeros(1),
-        np.array([[4.0, 2.0]]),
-        np.zeros((1, 2)),
-    )
-    assert d == math.inf
+    assert free_distance_to([1.0, 0.5])[0] == math.inf
 
 
 def test_allowed_advance_follows_the_safe_distance_rule():
