@@ -218,6 +218,11 @@ def overlaps_over_time(
 
 
 # ---------------------------------------------------------------------- area
+def arc_length(points: np.ndarray) -> np.ndarray:
+    """``[P]`` m: cumulative arc length along a polyline of ``[P, 2]`` m points, 0 at the first."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=-1))])
+
+
 def points_in_area(area: shapely.Geometry, points: np.ndarray) -> np.ndarray:
     """Whether points lie in an area (e.g. the drivable area); the boundary counts as inside.
 

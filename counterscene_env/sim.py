@@ -764,7 +764,7 @@ class ClosedLoop:
         settled[ep.egos] = False
         for r in movers:
             path, path_yaw, due = self._path(ep, int(r), bool(on_plan[r]), int(k[r]), bool(idm[r]))
-            arc = yielding.path_arc_length(path)
+            arc = geometry.arc_length(path)
             done = ep.progress[r]
             if np.isnan(done):
                 done = arc[due - 1]  # a log row's first step: on schedule

@@ -32,21 +32,17 @@ from counterscene_env import geometry
 BRAKE = 6.0
 #: Most an agent held back may speed up per second towards its plan [m/s^2].
 ACCEL = 4.0
-#: Growth of the yielding agent's box when its path is checked: (length, width) [m], so that
-#: it stops about half a metre short of the other car, not bumper to bumper.
+#: Growth of the yielding agent's box when its path is checked: (length, width) [m]. The length
+#: is added in front only, so it stops about a metre short of the other car, not bumper to
+#: bumper; the width adds 0.2 m on each side.
 MARGIN = np.array([1.0, 0.4])
-
-
-def path_arc_length(points: np.ndarray) -> np.ndarray:
-    """``[P]`` m: cumulative arc length along ``[P, 2]`` m points, 0 at the first."""
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=-1))])
 
 
 def point_at(points: np.ndarray, yaws: np.ndarray, arc: np.ndarray, s: float):
     """Position ``[2]`` m and yaw (rad) at arc length ``s`` m along a path.
 
     ``points`` ``[P, 2]`` m, ``yaws`` ``[P]`` rad and ``arc`` ``[P]`` m (non-decreasing, from
-    :func:`path_arc_length`). Where the path stands still (repeated points) the first one wins.
+    :func:`counterscene_env.geometry.arc_length`). Where the path stands still (repeated points) the first one wins.
     """
     j = int(np.clip(np.searchsorted(arc, s, side="right") - 1, 0, len(arc) - 2))
     seg = arc[j + 1] - arc[j]

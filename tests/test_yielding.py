@@ -7,13 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from counterscene_env import yielding
+from counterscene_env import geometry, yielding
 
 
 def straight_path(length: float = 40.0, step: float = 0.5):
     xs = np.arange(0.0, length + 1e-9, step)
     points = np.stack([xs, np.zeros_like(xs)], -1)
-    return points, np.zeros(len(xs)), yielding.path_arc_length(points)
+    return points, np.zeros(len(xs)), geometry.arc_length(points)
 
 
 def free_distance_to(centre, velocity=(0.0, 0.0)):
@@ -77,7 +77,7 @@ def test_allowed_advance_follows_the_safe_distance_rule():
 def test_point_at_interpolates_position_and_yaw_and_survives_a_standstill():
     points = np.array([[0.0, 0.0], [0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])
     yaws = np.array([0.0, 0.0, 0.0, np.pi / 2])
-    arc = yielding.path_arc_length(points)
+    arc = geometry.arc_length(points)
     np.testing.assert_allclose(arc, [0, 0, 10, 20])
     xy, yaw = yielding.point_at(points, yaws, arc, 5.0)
     np.testing.assert_allclose(xy, [5.0, 0.0])

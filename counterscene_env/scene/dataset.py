@@ -40,6 +40,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from counterscene_env.geometry import arc_length
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.datagen import MANIFEST, shard_paths
 from counterscene_env.scene.shards import load_scenes
@@ -246,7 +247,7 @@ def lane_segments(scene: Scene, length: float, points: int) -> tuple[np.ndarray,
     """
     segs, widths = [], []
     for line, width in zip(scene.road.lane_centerlines, scene.road.lane_widths, strict=True):
-        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
+        arc = arc_length(line)
         total = arc[-1]
         if total <= 1e-6:
             continue

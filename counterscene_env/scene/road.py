@@ -26,6 +26,8 @@ from highway_env.road.lane import (
 )
 from highway_env.road.road import RoadNetwork
 
+from counterscene_env.geometry import arc_length
+
 #: Spacing of the sampled centre lines and lane-surface outlines, m.
 SAMPLE_SPACING = 1.0
 
@@ -137,7 +139,7 @@ class RoadMap:
         # highway-env's spline needs a lane of at least 1 m; shorter ones (map crops, stubs)
         # keep their surface in the drivable area but are not lanes of the network. They are
         # dropped before nodes are named, so no link runs through them.
-        usable = [_arc_length(line) >= MIN_LANE_LENGTH for line in lines]
+        usable = [arc_length(line)[-1] >= MIN_LANE_LENGTH for line in lines]
         links = [
             [j for j in succ if 0 <= j < n and usable[j]] if usable[i] else []
             for i, succ in enumerate(successors)
@@ -266,10 +268,6 @@ def _poly_lane(points: np.ndarray, width: float, **kwargs) -> PolyLaneFixedWidth
     lane = PolyLaneFixedWidth(points.tolist(), width=width, **kwargs)
     lane.source_points = np.asarray(points, dtype=np.float64)
     return lane
-
-
-def _arc_length(points: np.ndarray) -> float:
-    return float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum()) if len(points) > 1 else 0.0
 
 
 def _dedupe(points: np.ndarray) -> np.ndarray:
