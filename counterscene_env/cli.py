@@ -122,6 +122,13 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument(
         "--init", metavar="DIR", help="start from this model's weights ('default': shipped)"
     )
+    tr.add_argument(
+        "--off-lane-weight",
+        type=float,
+        default=0.0,
+        help="weight of the loss term on predicted points off the lanes the log follows "
+        "(default 0: left out; the shipped model used 1.0)",
+    )
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
     tr.set_defaults(func=_cmd_train)
 
@@ -424,6 +431,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         seed=args.seed,
         device=args.device,
         init=args.init,
+        off_lane_weight=args.off_lane_weight,
     )
     record = train(cfg, progress=not args.quiet)
     print(json.dumps(json_safe(record)))

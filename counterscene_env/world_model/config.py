@@ -30,7 +30,10 @@ class ModelConfig:
         num_lanes: lane segments the model sees.
         lane_points: points per lane segment.
         lane_segment_length: length of a lane segment [m].
-        map_radius: lane segments farther than this from the ego are left out [m].
+        map_radius: lane segments farther than this from every map anchor are left out [m].
+        lane_anchors: ``"ego"``: the window's lanes are those nearest the ego (checkpoints
+            without the key); ``"agents"``: those nearest where the window's agents are and
+            where constant velocity would take them (``scene.dataset.WindowConfig``).
         local_lanes: per agent, this many (at most ``num_lanes``) of the lane segments nearest
             to it, expressed in its own frame (position and course at "now"), form a second,
             agent-centric map that the agent's tokens attend to in every block; 0 disables it
@@ -73,6 +76,7 @@ class ModelConfig:
     lane_points: int = 10
     lane_segment_length: float = 20.0
     map_radius: float = 60.0
+    lane_anchors: str = "ego"
     local_lanes: int = 0
     local_radius: float = 30.0
     d_model: int = 96
@@ -116,6 +120,10 @@ class ModelConfig:
             (
                 self.num_lanes >= 1 and self.lane_points >= 2,
                 "need num_lanes >= 1, lane_points >= 2",
+            ),
+            (
+                self.lane_anchors in ("ego", "agents"),
+                f"lane_anchors must be 'ego' or 'agents', got {self.lane_anchors!r}",
             ),
             (
                 self.local_lanes >= 0 and self.local_radius > 0,
@@ -174,7 +182,7 @@ class ModelConfig:
 
 PRESETS: dict[str, ModelConfig] = {
     # CPU default: every number here was measured (docs/world_model.md, `counterscene bench`).
-    "default": ModelConfig(local_lanes=10),
+    "default": ModelConfig(num_lanes=48, lane_anchors="agents", local_lanes=10),
     # The paper's reference constants (hyper-parameter table of the CounterScene paper).
     "paper": ModelConfig(
         history_stride=1,
@@ -185,6 +193,8 @@ PRESETS: dict[str, ModelConfig] = {
         num_blocks=4,
         sampler="ddpm",
         sampling_steps=100,
+        num_lanes=48,
+        lane_anchors="agents",
         local_lanes=10,
     ),
 }

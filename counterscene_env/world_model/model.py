@@ -33,6 +33,7 @@ from counterscene_env.scene.dataset import WindowConfig
 from counterscene_env.world_model.cig import edge_features
 from counterscene_env.world_model.config import ModelConfig
 from counterscene_env.world_model.denoiser import Context, Denoiser
+from counterscene_env.world_model.map_guidance import lane_excess
 from counterscene_env.world_model.scheduler import CosineScheduler
 
 POSITION_SCALE = 20.0  # m: input positions are divided by this
@@ -44,6 +45,11 @@ LANE_WIDTH_SCALE = 4.0  # m
 # Trajectory terms of the training loss, added to the action MSE (normalised units): the mean
 # position error [m], heading error [rad] and speed error [m/s] of the rolled-out prediction.
 TRAJECTORY_WEIGHTS = {"position": 0.1, "yaw": 1.0, "speed": 0.1}
+
+# A predicted point counts against the off-lane term only where the log itself is within this
+# of a window lane strip [m]: the term teaches the model to follow the lanes the log follows,
+# never to pull a car parked on the verge (or outside the window's map) onto a lane.
+OFF_LANE_LOG_TOLERANCE = 0.25
 
 #: ``guidance(mean, sigma, t, x0) -> mean``: edits the posterior mean ``[B*S, K, Ta, 2]``
 #: (normalised actions) at one denoising step; see :meth:`CosineScheduler.step`.
@@ -114,6 +120,7 @@ class WorldModel(nn.Module):
             map_radius=c.map_radius,
             agent_radius=c.agent_radius,
             stride=stride,
+            lane_anchors=c.lane_anchors,
         )
 
     @staticmethod
@@ -310,12 +317,25 @@ class WorldModel(nn.Module):
 
     # ------------------------------------------------------------------ training
     def loss(
-        self, batch: dict[str, torch.Tensor], generator: torch.Generator | None = None
+        self,
+        batch: dict[str, torch.Tensor],
+        generator: torch.Generator | None = None,
+        off_lane_weight: float = 0.0,
     ) -> dict[str, torch.Tensor]:
         """Training loss of one batch: action MSE plus rolled-out trajectory errors.
 
+        Args:
+            batch: training windows (with ``future``).
+            generator: diffusion time steps, noise and graph dropout.
+            off_lane_weight: weight of the off-lane term: the mean distance [m] by which the
+                rolled-out prediction lies outside every window lane strip, at the action
+                tokens' steps where the log lies on one (``OFF_LANE_LOG_TOLERANCE``). The
+                position error alone weighs a turn that goes wide onto the verge no more than
+                one that goes wide along the lane; the open-loop off-road rate is mostly such
+                under-turns (docs/world_model.md).
+
         Returns a dict with ``loss`` (to minimise) and its terms ``action``, ``position`` [m],
-        ``yaw`` [rad], ``speed`` [m/s] (detached).
+        ``yaw`` [rad], ``speed`` [m/s], ``off_lane`` [m] (detached).
         """
         c = self.config
         hist, fut = self.kinematic_states(batch)
@@ -345,13 +365,35 @@ class WorldModel(nn.Module):
         speed = ((traj[..., 3] - fut[..., 3]).abs() * fut_ok).sum() / n
         tw = TRAJECTORY_WEIGHTS
         loss = action + tw["position"] * pos + tw["yaw"] * yaw + tw["speed"] * speed
+        off_lane = torch.zeros((), device=device)
+        if off_lane_weight > 0:
+            off_lane = self._off_lane(batch, traj[..., :2], fut[..., :2], fut_ok)
+            loss = loss + off_lane_weight * off_lane
         return {
             "loss": loss,
             "action": action.detach(),
             "position": pos.detach(),
             "yaw": yaw.detach(),
             "speed": speed.detach(),
+            "off_lane": off_lane.detach(),
         }
+
+    def _off_lane(
+        self,
+        batch: dict[str, torch.Tensor],
+        pred: torch.Tensor,
+        log: torch.Tensor,
+        ok: torch.Tensor,
+    ) -> torch.Tensor:
+        """Mean off-lane distance [m] of ``pred [B, K, F, 2]`` where ``log [B, K, F, 2]`` is on
+        a window lane, at the last step of each action token (``ok [B, K, F]``)."""
+        s = self.config.action_stride
+        lanes = (batch["map"], batch["map_valid"], batch["map_widths"])
+        pred, log, ok = pred[:, :, s - 1 :: s], log[:, :, s - 1 :: s], ok[:, :, s - 1 :: s]
+        with torch.no_grad():
+            ok = ok & (lane_excess(log, *lanes) <= OFF_LANE_LOG_TOLERANCE)
+        excess = lane_excess(pred, *lanes)
+        return (excess * ok).sum() / ok.float().sum().clamp(min=1)
 
     # ------------------------------------------------------------------ sampling
     def sample(

@@ -64,6 +64,8 @@ class TrainConfig:
         device: torch device.
         init: a model directory (or ``"default"``, the shipped one) whose weights and action
             normalisation start the run (fine-tuning); None: a fresh model.
+        off_lane_weight: weight of the loss's off-lane term (``WorldModel.loss``); 0 leaves
+            it out.
     """
 
     data: tuple[str, ...]
@@ -84,6 +86,11 @@ class TrainConfig:
     seed: int = 0
     device: str = "cpu"
     init: str | None = None
+    off_lane_weight: float = 0.0
+
+
+# ModelConfig fields that choose the window's lanes but size no tensor (``--init`` may change them).
+WINDOW_MAP_FIELDS = ("num_lanes", "map_radius", "lane_anchors")
 
 
 def _windows(ds: SceneWindowDataset, rows: Sequence[int]) -> dict[str, torch.Tensor]:
@@ -190,13 +197,16 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         from counterscene_env.world_model.checkpoint import load_model
 
         start = load_model(cfg.init)
-        # A model without the agent-centric map may seed one with it: the new modules start
-        # at zero output, so the fine-tune starts from the initial model's exact predictions.
+        # Which lanes the window holds sizes no tensor, so a fine-tune may change it. A model
+        # without the agent-centric map may seed one with it: the new modules start at zero
+        # output, so the fine-tune starts from the initial model's exact predictions.
+        same = start.config.replace(**{k: getattr(model_cfg, k) for k in WINDOW_MAP_FIELDS})
         adds_local = start.config.local_lanes == 0 and model_cfg.local_lanes > 0
-        same = start.config.replace(
-            local_lanes=model_cfg.local_lanes, local_radius=model_cfg.local_radius
-        )
-        if (same if adds_local else start.config) != model_cfg:
+        if adds_local:
+            same = same.replace(
+                local_lanes=model_cfg.local_lanes, local_radius=model_cfg.local_radius
+            )
+        if same != model_cfg:
             raise ValueError(
                 f"--init model {cfg.init!r} has another architecture than preset "
                 f"{cfg.preset!r} with the given overrides"
@@ -253,7 +263,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             group["lr"] = learning_rate(cfg, step)
         rows = next(batches).to(device)
         batch = {k: v[rows] for k, v in train_data.items()}
-        losses = model.loss(batch, noise)
+        losses = model.loss(batch, noise, cfg.off_lane_weight)
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
@@ -325,6 +335,8 @@ def _plain(cfg: TrainConfig) -> dict[str, Any]:
     d.pop("out")  # a moved or copied run directory still resumes
     if d["init"] is None:
         d.pop("init")  # runs from before --init existed still resume
+    if d["off_lane_weight"] == 0:
+        d.pop("off_lane_weight")  # and so do runs from before the off-lane term
     d["steps"] = None  # a longer --steps continues the same run
     d["lr_decay_start"] = None  # and so may the tail of the schedule
     return d
