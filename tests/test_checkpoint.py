@@ -306,3 +306,14 @@ def test_checkpoint_without_the_agent_centric_map_key_loads_as_before(tmp_path):
         a = model.sample(batch, 1, torch.Generator().manual_seed(0)).trajectory
         b = loaded.sample(batch, 1, torch.Generator().manual_seed(0)).trajectory
     torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_checkpoint_without_lane_anchors_keeps_the_ego_centred_map(tmp_path):
+    """Checkpoints written before ``lane_anchors`` existed were trained on the lanes nearest
+    the ego: they load with that map, so their windows (and predictions) stay as they were."""
+    model = _model(TINY.replace(lane_anchors="ego"))
+    out = save_model(model, tmp_path / "old", preset="default")
+    _edit_config(out, lambda m: m["architecture"].pop("lane_anchors"))
+    loaded = load_model(out)
+    assert loaded.config.lane_anchors == "ego"
+    assert loaded.window_config().lane_anchors == "ego"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import make_scene
+from conftest import make_scene, straight_road
 
 from counterscene_env.scene import save_scenes
 from counterscene_env.scene.dataset import SceneWindowDataset, WindowConfig
@@ -68,6 +68,42 @@ def test_ego_frame_padding_and_validity():
     direction = lanes[:, -1] - lanes[:, 0]
     assert np.allclose(direction[:, 0], 0, atol=1e-4) and (direction[:, 1] < 0).all()
     assert (np.linalg.norm(lanes, axis=-1).min(axis=1) <= CFG.map_radius + 1e-4).all()
+
+
+def _far_agent_scene():
+    # A 600 m road along +x. The ego drives east at 10 m/s from x = 50; agent 1 drives east at
+    # 20 m/s from x = 250, 200 m ahead, far beyond the ego's 60 m map radius.
+    t = np.arange(40) * 0.1
+    pos = np.stack([np.stack([50 + 10 * t, 0 * t], -1), np.stack([250 + 20 * t, 0 * t], -1)])
+    speeds = np.array([np.full(40, 10.0), np.full(40, 20.0)])
+    return make_scene(pos, speeds=speeds, road=straight_road(2, length=600.0))
+
+
+@pytest.mark.parametrize("anchors", ["ego", "agents"])
+def test_lane_anchors_choose_whose_road_the_window_holds(anchors):
+    cfg = WindowConfig(
+        history_steps=11,
+        future_steps=20,
+        num_agents=2,
+        num_lanes=8,
+        lane_points=5,
+        lane_segment_length=20.0,
+        lane_anchors=anchors,
+    )
+    w = SceneWindowDataset([_far_agent_scene()], cfg).window(0, 10)
+    lanes = w["map"][w["map_valid"]]  # ego frame: the ego at (0, 0), agent 1 at (200, 0)
+
+    def covered(x: float) -> bool:  # some window lane passes within 1 m of (x, 0)
+        return bool((np.linalg.norm(lanes - [x, 0.0], axis=-1) < 1.0).any())
+
+    assert covered(0.0) and covered(10.0)  # the ego's own road is always there
+    # Agent 1 now, and where constant velocity takes it by the end of the 2 s horizon (+40 m).
+    assert covered(200.0) == covered(240.0) == (anchors == "agents")
+
+
+def test_unknown_lane_anchors_are_refused():
+    with pytest.raises(ValueError, match="lane_anchors"):
+        WindowConfig(lane_anchors="map")
 
 
 def test_agent_appearing_later_is_masked_until_it_appears():

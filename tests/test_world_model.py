@@ -362,6 +362,27 @@ def test_learning_rate_schedule():
     assert learning_rate(decay, 100) == pytest.approx(1e-4)
 
 
+def test_off_lane_term_counts_only_where_the_log_keeps_to_a_lane(tiny):
+    # Two cars along the lanes y = 0 and y = 4 of a road drivable for y in [-2, 6].
+    batch = _batch(tiny, [_straight_scene()])
+    log = batch["future"][..., :2]
+    ok = batch["future_valid"] & tiny.agent_mask(batch)[..., None]
+    assert float(tiny.off_lane(batch, log, log, ok)) == 0.0  # the log itself: nothing
+    # Shifted 9 m to the left, over the first second (well inside the window's map): the
+    # cars on y = 0 and y = 4 run 3 m and 7 m beyond the outer strip's edge (y = 6).
+    first = ok & (torch.arange(ok.shape[-1]) < 10)
+    side = log + torch.tensor([0.0, 9.0])
+    assert float(tiny.off_lane(batch, side, log, first)) == pytest.approx(5.0, abs=1e-3)
+    # A log that itself leaves the lanes (a car on the verge) is never pulled back.
+    assert float(tiny.off_lane(batch, side, side, ok)) == 0.0
+    # In the loss, the term adds its weight times its value (same noise, same draw).
+    g = lambda: torch.Generator().manual_seed(3)  # noqa: E731
+    plain, weighted = tiny.loss(batch, g()), tiny.loss(batch, g(), off_lane_weight=2.0)
+    assert float(weighted["loss"]) == pytest.approx(
+        float(plain["loss"]) + 2.0 * float(weighted["off_lane"]), rel=1e-5
+    )
+
+
 def test_local_map_is_each_agents_nearest_lanes_in_its_own_frame():
     model = _model(TINY.replace(local_lanes=2, local_radius=30.0))
     # Lane 0 runs north along x = 10, lane 1 is 100 m away, lane 2 is padding.

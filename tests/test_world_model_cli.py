@@ -229,3 +229,22 @@ def test_init_adds_the_agent_centric_map_but_never_drops_it(dataset, tmp_path, c
     capsys.readouterr()
     assert _train(dataset, tmp_path / "back", 2, "--init", str(fine), "--set", "local_lanes=0") == 1
     assert "another architecture" in capsys.readouterr().err
+
+
+def test_init_may_change_which_lanes_the_window_holds(dataset, tmp_path):
+    # The window's lanes size no tensor: a model trained on the ego-centred map of 32 lanes
+    # seeds the default's agent-anchored 48, every tensor carried over.
+    old = tmp_path / "old"
+    assert _train(dataset, old, 2, "--set", "lane_anchors=ego", "--set", "num_lanes=32") == 0
+    fine = tmp_path / "fine"
+    assert _train(dataset, fine, 2, "--init", str(old), "--lr", "0", "--off-lane-weight", "1") == 0
+    start, model = load_model(old), load_model(fine)
+    assert (start.config.lane_anchors, start.config.num_lanes) == ("ego", 32)
+    assert (model.config.lane_anchors, model.config.num_lanes) == ("agents", 48)
+    for (name, a), (_, b) in zip(
+        start.state_dict().items(), model.state_dict().items(), strict=True
+    ):
+        assert torch.equal(a, b), name
+    # The off-lane term is logged with the other losses.
+    record = json.loads(_log(fine)[-1])
+    assert math.isfinite(record["off_lane"]) and record["off_lane"] >= 0

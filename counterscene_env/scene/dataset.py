@@ -4,8 +4,8 @@ Each item is one scene at one "now" step ``t0``: the ego and its ``num_agents - 
 vehicles at ``t0`` (ego first, then by distance, zero-padded), their states over the
 ``history_steps`` frames ending at ``t0`` and the ``future_steps`` frames after it, and the
 ``num_lanes`` lane segments nearest the ego (``lane_anchors="ego"``) or nearest the places the
-window's agents are and are heading to (``"agents"``). Everything is expressed in the ego-centred frame
-of DESIGN 3.1: the ego at the origin, heading along +x, at ``t0``.
+window's agents are and are heading to (``"agents"``). Everything is expressed in the
+ego-centred frame of DESIGN 3.1: the ego at the origin, heading along +x, at ``t0``.
 
 Item keys (K agents, H history frames, F future frames, M lane segments of P points):
 

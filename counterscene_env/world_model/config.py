@@ -14,6 +14,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from counterscene_env.scene.dataset import LANE_ANCHORS
+
 
 @dataclass(frozen=True)
 class ModelConfig:
@@ -58,6 +60,10 @@ class ModelConfig:
             posterior mean, clipped to the step's sigma; 0 disables); see ``map_guidance.py``.
             Off by default: measured on the held-out scenes it lowers the off-road rate but
             raises ADE more (docs/world_model.md).
+        lane_steering: Adam steps of final-step lane keeping (``map_guidance.
+            steer_onto_lanes``): the finished samples' yaw-rate tokens are corrected so that
+            every agent that is on a lane now keeps its centre inside a lane strip; 0 disables
+            (checkpoints without the key). Measured in docs/world_model.md.
         yaw_gain: low-speed yaw-rate bound of the rollout, |w| <= yaw_gain * v [rad/m].
         lateral_limit: high-speed yaw-rate bound, |w| <= lateral_limit / v [m/s^2]. DESIGN's
             values are 0.5 and 2 pi; the defaults are looser because the training traffic
@@ -93,6 +99,7 @@ class ModelConfig:
     eta: float = 1.0
     clip_sample: float = 5.0
     map_guidance: float = 0.0
+    lane_steering: int = 0
     yaw_gain: float = 1.0
     lateral_limit: float = 25.0
     dt: float = 0.1
@@ -122,8 +129,8 @@ class ModelConfig:
                 "need num_lanes >= 1, lane_points >= 2",
             ),
             (
-                self.lane_anchors in ("ego", "agents"),
-                f"lane_anchors must be 'ego' or 'agents', got {self.lane_anchors!r}",
+                self.lane_anchors in LANE_ANCHORS,
+                f"lane_anchors must be one of {LANE_ANCHORS}, got {self.lane_anchors!r}",
             ),
             (
                 self.local_lanes >= 0 and self.local_radius > 0,
@@ -182,7 +189,7 @@ class ModelConfig:
 
 PRESETS: dict[str, ModelConfig] = {
     # CPU default: every number here was measured (docs/world_model.md, `counterscene bench`).
-    "default": ModelConfig(num_lanes=48, lane_anchors="agents", local_lanes=10),
+    "default": ModelConfig(num_lanes=48, lane_anchors="agents", local_lanes=10, lane_steering=20),
     # The paper's reference constants (hyper-parameter table of the CounterScene paper).
     "paper": ModelConfig(
         history_stride=1,
@@ -196,6 +203,7 @@ PRESETS: dict[str, ModelConfig] = {
         num_lanes=48,
         lane_anchors="agents",
         local_lanes=10,
+        lane_steering=20,
     ),
 }
 

@@ -69,3 +69,96 @@ def make_map_guidance(model, batch: dict[str, torch.Tensor], num_samples: int, s
         return mean + torch.where(guided[..., None, None], delta, 0.0)
 
     return hook
+
+
+LANE_MARGIN = 0.2  # m: steered points end at least this far inside a lane strip's edge
+CANDIDATES = 6  # lane segments per predicted point that the steering may aim at
+STEER_LR = 0.1  # Adam step on the normalised yaw-rate tokens
+STEER_PRIOR = 0.01  # weight of the squared change of the tokens (normalised units)
+
+
+def _segment_distance(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Distance [m] of points ``p [..., 2]`` to segments ``a -> b [..., 2]`` (broadcast)."""
+    ab = b - a
+    u = (((p - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp(min=1e-9)).clamp(0, 1)
+    return (p - (a + u[..., None] * ab)).norm(dim=-1)
+
+
+def steer_onto_lanes(
+    model, batch: dict[str, torch.Tensor], normalized: torch.Tensor, iterations: int
+) -> torch.Tensor:
+    """Final-step lane keeping: correct the *yaw-rate* tokens of finished samples so that every
+    on-lane agent's rolled-out centre stays inside a lane strip of the window's map.
+
+    This is the paper's final-step (map) guidance restricted to steering. ``iterations`` Adam
+    steps (``STEER_LR``) minimise, per agent, the mean squared distance by which its centre
+    lies outside the nearest candidate strip narrowed by ``LANE_MARGIN``, plus
+    ``STEER_PRIOR`` x the squared change of its tokens. Acceleration is never touched: braking
+    is the cheapest way to stay on a lane (a car that stops stays where it is), and it is not
+    what an under-turning sample gets wrong. The candidates are each point's ``CANDIDATES``
+    nearest segments before the correction, so one step costs ``K x F x CANDIDATES`` distances
+    per sample instead of every segment of the map.
+
+    Args:
+        model: the ``WorldModel`` that sampled (its rollout and normalisation).
+        batch: the scene windows, ``B`` of them.
+        normalized: ``[B * S, K, Ta, 2]`` sampled action tokens, normalised (S samples per
+            scene, scene-major as ``WorldModel.sample`` draws them).
+        iterations: Adam steps; 0 returns ``normalized`` unchanged.
+
+    Returns:
+        ``[B * S, K, Ta, 2]``: the tokens with corrected yaw rates (agents off every lane at
+        "now", padding and acceleration unchanged).
+    """
+    if iterations <= 0:
+        return normalized
+    S = normalized.shape[0] // batch["map"].shape[0]
+    lanes = batch["map"].repeat_interleave(S, 0)  # [N, M, P, 2]
+    lanes_ok = batch["map_valid"].repeat_interleave(S, 0)
+    widths = batch["map_widths"].repeat_interleave(S, 0)
+    state = model.current_state(batch).repeat_interleave(S, 0)  # [N, K, 4]
+    valid = model.agent_mask(batch).repeat_interleave(S, 0)
+    with torch.no_grad():
+        now = lane_excess(state[:, :, None, :2], lanes, lanes_ok, widths)[..., 0]
+        guided = valid & (now <= ON_LANE_TOLERANCE)  # [N, K]
+        if not guided.any() or not lanes_ok.any():
+            return normalized
+        # Each predicted point's nearest segments: a [N, K, F, C] index into the M * (P - 1)
+        # segments of its scene, and their ends and allowed half-widths.
+        N, M, P, _ = lanes.shape
+        a, b = lanes[:, :, :-1].reshape(N, -1, 2), lanes[:, :, 1:].reshape(N, -1, 2)
+        half = (widths[:, :, None] / 2 - LANE_MARGIN).expand(N, M, P - 1).reshape(N, -1)
+        ok = lanes_ok[:, :, None].expand(N, M, P - 1).reshape(N, -1)
+        xy = model.rollout(normalized, state)[..., :2]  # [N, K, F, 2]
+        F = xy.shape[2]
+        gap = (
+            _segment_distance(xy.reshape(N, -1, 1, 2), a[:, None], b[:, None]) - half[:, None]
+        )  # [N, K*F, M*(P-1)]
+        gap = torch.where(ok[:, None], gap, torch.inf)
+        idx = gap.topk(min(CANDIDATES, gap.shape[-1]), dim=-1, largest=False).indices
+        K = xy.shape[1]
+
+        def pick(t: torch.Tensor) -> torch.Tensor:  # [N, M*(P-1), ...] -> [N, K, F, C, ...]
+            flat = idx.reshape(N, -1)
+            shape = (N, flat.shape[1], *t.shape[2:])
+            out = t.gather(1, flat.reshape(*flat.shape, *[1] * (t.dim() - 2)).expand(shape))
+            return out.reshape(N, K, F, idx.shape[-1], *t.shape[2:])
+
+        ca, cb, ch, cok = pick(a), pick(b), pick(half), pick(ok)
+    steer = torch.zeros_like(normalized)
+    steer[..., 1] = 1.0  # only the yaw-rate channel moves
+    steer = steer * guided[..., None, None]
+    delta = torch.zeros_like(normalized, requires_grad=True)
+    opt = torch.optim.Adam([delta], lr=STEER_LR)
+    with torch.enable_grad():
+        for _ in range(iterations):
+            change = delta * steer
+            p = model.rollout(normalized + change, state)[..., :2]  # [N, K, F, 2]
+            dist = _segment_distance(p[..., None, :], ca, cb) - ch  # [N, K, F, C]
+            excess = torch.where(cok, dist, 1e3).amin(-1).clamp(min=0)  # [N, K, F]
+            excess = torch.where(guided[..., None], excess, 0.0)
+            loss = (excess**2).mean(-1).sum() + STEER_PRIOR * (change**2).sum()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+    return (normalized + delta.detach() * steer).detach()

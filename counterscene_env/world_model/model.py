@@ -33,7 +33,7 @@ from counterscene_env.scene.dataset import WindowConfig
 from counterscene_env.world_model.cig import edge_features
 from counterscene_env.world_model.config import ModelConfig
 from counterscene_env.world_model.denoiser import Context, Denoiser
-from counterscene_env.world_model.map_guidance import lane_excess
+from counterscene_env.world_model.map_guidance import lane_excess, steer_onto_lanes
 from counterscene_env.world_model.scheduler import CosineScheduler
 
 POSITION_SCALE = 20.0  # m: input positions are divided by this
@@ -367,7 +367,7 @@ class WorldModel(nn.Module):
         loss = action + tw["position"] * pos + tw["yaw"] * yaw + tw["speed"] * speed
         off_lane = torch.zeros((), device=device)
         if off_lane_weight > 0:
-            off_lane = self._off_lane(batch, traj[..., :2], fut[..., :2], fut_ok)
+            off_lane = self.off_lane(batch, traj[..., :2], fut[..., :2], fut_ok)
             loss = loss + off_lane_weight * off_lane
         return {
             "loss": loss,
@@ -378,7 +378,7 @@ class WorldModel(nn.Module):
             "off_lane": off_lane.detach(),
         }
 
-    def _off_lane(
+    def off_lane(
         self,
         batch: dict[str, torch.Tensor],
         pred: torch.Tensor,
@@ -406,6 +406,7 @@ class WorldModel(nn.Module):
         eta: float | None = None,
         guidance: GuidanceHook | None = None,
         map_guidance: float | None = None,
+        lane_steering: int | None = None,
     ) -> Prediction:
         """Sample every agent's future, ``num_samples`` per scene, in one batched call.
 
@@ -423,6 +424,8 @@ class WorldModel(nn.Module):
                 it runs after the map guidance.
             map_guidance: step size of the map guidance (``map_guidance.py``); default from the
                 config, 0 disables.
+            lane_steering: Adam steps of final-step lane keeping on the finished samples
+                (``map_guidance.steer_onto_lanes``); default from the config, 0 disables.
         """
         c = self.config
         sampler = sampler or c.sampler
@@ -472,6 +475,8 @@ class WorldModel(nn.Module):
         # Padding agents get zero physical actions: a clean, finite "keep going" plan.
         still = self.normalize(torch.zeros(2, device=device))
         x = torch.where(valid.repeat_interleave(num_samples, 0)[..., None, None], x, still)
+        steer = c.lane_steering if lane_steering is None else lane_steering
+        x = steer_onto_lanes(self, batch, x, steer)
         with torch.no_grad():
             traj = self.rollout(x, state)
             actions = self.denormalize(x).repeat_interleave(c.action_stride, -2)
