@@ -351,6 +351,32 @@ def test_map_guidance_pulls_samples_toward_the_lanes(tiny, scene_batch):
     assert off(1.0) < off(0.0)
 
 
+def test_lane_steering_turns_a_drifting_car_back_onto_the_road(tiny):
+    """Final-step lane keeping: a plan that curves off the road is steered back onto a lane by
+    its yaw rates alone; a car that is off every lane now is left alone."""
+    from counterscene_env.world_model.map_guidance import lane_excess, steer_onto_lanes
+
+    # Cars on the lanes y = 0 and y = 4 (road y in [-2, 6]) and one parked on the verge at
+    # y = -12; every plan turns left at 0.15 rad/s, which leaves the road within 3 s.
+    batch = _batch(tiny, [_straight_scene((10.0, 12.0, 0.0), (0.0, 4.0, -12.0), (0, -15, 30))])
+    c = tiny.config
+    plan = torch.zeros(1, c.num_agents, c.action_tokens, 2)
+    plan[..., 0], plan[..., 1] = 0.5, 0.15  # m/s^2, rad/s
+    x = tiny.normalize(plan)
+    state = tiny.current_state(batch)
+    lanes = (batch["map"], batch["map_valid"], batch["map_widths"])
+
+    def off(tokens):  # [K] mean distance [m] outside every lane strip over the horizon
+        return lane_excess(tiny.rollout(tokens, state)[..., :2], *lanes)[0].mean(-1)
+
+    assert (off(x)[:2] > 3.0).all()
+    steered = steer_onto_lanes(tiny, batch, x, 40)
+    assert (off(steered)[:2] < 0.05).all()
+    assert torch.equal(steered[..., 0], x[..., 0])  # acceleration is never touched
+    assert torch.equal(steered[0, 2:], x[0, 2:])  # the parked car and padding: unchanged
+    assert steer_onto_lanes(tiny, batch, x, 0) is x
+
+
 def test_learning_rate_schedule():
     from counterscene_env.world_model.train import TrainConfig, learning_rate
 

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import torch
 
+from counterscene_env.dynamics import max_yaw_rate
+
 ON_LANE_TOLERANCE = 1.0  # m outside a lane strip at "now" that still counts as on a lane
 
 
@@ -72,6 +74,7 @@ def make_map_guidance(model, batch: dict[str, torch.Tensor], num_samples: int, s
 
 
 LANE_MARGIN = 0.2  # m: steered points end at least this far inside a lane strip's edge
+REFRESH = 1000  # iterations between updates of the candidate segments
 CANDIDATES = 6  # lane segments per predicted point that the steering may aim at
 STEER_LR = 0.1  # Adam step on the normalised yaw-rate tokens
 STEER_PRIOR = 0.01  # weight of the squared change of the tokens (normalised units)
@@ -123,42 +126,72 @@ def steer_onto_lanes(
         guided = valid & (now <= ON_LANE_TOLERANCE)  # [N, K]
         if not guided.any() or not lanes_ok.any():
             return normalized
-        # Each predicted point's nearest segments: a [N, K, F, C] index into the M * (P - 1)
-        # segments of its scene, and their ends and allowed half-widths.
         N, M, P, _ = lanes.shape
         a, b = lanes[:, :, :-1].reshape(N, -1, 2), lanes[:, :, 1:].reshape(N, -1, 2)
         half = (widths[:, :, None] / 2 - LANE_MARGIN).expand(N, M, P - 1).reshape(N, -1)
         ok = lanes_ok[:, :, None].expand(N, M, P - 1).reshape(N, -1)
-        xy = model.rollout(normalized, state)[..., :2]  # [N, K, F, 2]
-        F = xy.shape[2]
-        gap = (
-            _segment_distance(xy.reshape(N, -1, 1, 2), a[:, None], b[:, None]) - half[:, None]
-        )  # [N, K*F, M*(P-1)]
-        gap = torch.where(ok[:, None], gap, torch.inf)
-        idx = gap.topk(min(CANDIDATES, gap.shape[-1]), dim=-1, largest=False).indices
-        K = xy.shape[1]
+    rollout = _steering_rollout(model, normalized, state)
 
-        def pick(t: torch.Tensor) -> torch.Tensor:  # [N, M*(P-1), ...] -> [N, K, F, C, ...]
-            flat = idx.reshape(N, -1)
+    def candidates(xy: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Each point of ``xy [N, K, F, 2]``: its ``CANDIDATES`` nearest segments' ends,
+        allowed half-widths and validity, ``[N, K, F, C, ...]``."""
+        K, F = xy.shape[1:3]
+        gap = _segment_distance(xy.reshape(N, -1, 1, 2), a[:, None], b[:, None]) - half[:, None]
+        gap = torch.where(ok[:, None], gap, torch.inf)  # [N, K*F, M*(P-1)]
+        idx = gap.topk(min(CANDIDATES, gap.shape[-1]), dim=-1, largest=False).indices
+        flat = idx.reshape(N, -1)
+
+        def pick(t: torch.Tensor) -> torch.Tensor:
             shape = (N, flat.shape[1], *t.shape[2:])
             out = t.gather(1, flat.reshape(*flat.shape, *[1] * (t.dim() - 2)).expand(shape))
             return out.reshape(N, K, F, idx.shape[-1], *t.shape[2:])
 
-        ca, cb, ch, cok = pick(a), pick(b), pick(half), pick(ok)
+        return pick(a), pick(b), pick(half), pick(ok)
+
     steer = torch.zeros_like(normalized)
     steer[..., 1] = 1.0  # only the yaw-rate channel moves
     steer = steer * guided[..., None, None]
     delta = torch.zeros_like(normalized, requires_grad=True)
     opt = torch.optim.Adam([delta], lr=STEER_LR)
-    with torch.enable_grad():
-        for _ in range(iterations):
+    for i in range(iterations):
+        if i % REFRESH == 0:  # the nearest segments move with the points
+            with torch.no_grad():
+                ca, cb, ch, cok = candidates(rollout(normalized + delta * steer))
+        with torch.enable_grad():
             change = delta * steer
-            p = model.rollout(normalized + change, state)[..., :2]  # [N, K, F, 2]
+            p = rollout(normalized + change)  # [N, K, F, 2]
             dist = _segment_distance(p[..., None, :], ca, cb) - ch  # [N, K, F, C]
             excess = torch.where(cok, dist, 1e3).amin(-1).clamp(min=0)  # [N, K, F]
             excess = torch.where(guided[..., None], excess, 0.0)
             loss = (excess**2).mean(-1).sum() + STEER_PRIOR * (change**2).sum()
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            opt.step()
+        opt.step()
     return (normalized + delta.detach() * steer).detach()
+
+
+def _steering_rollout(model, normalized: torch.Tensor, state: torch.Tensor):
+    """``tokens -> [N, K, F, 2]`` centres: ``model.rollout`` for tokens that differ from
+    ``normalized [N, K, Ta, 2]`` in the yaw-rate channel only, without its step loop.
+
+    The unicycle's speeds depend on the accelerations alone, so with those fixed the speeds,
+    and with them the yaw-rate bounds, are known in advance; the courses and positions are
+    then cumulative sums (the same update as ``dynamics.unicycle_rollout``:
+    ``yaw_k = yaw_{k-1} + w_k dt``, ``x_k = x_{k-1} + v_k cos(yaw_k) dt``).
+    """
+    c = model.config
+    with torch.no_grad():
+        v = model.rollout(normalized, state)[..., 3]  # [N, K, F] speed after each step
+        before = torch.cat([state[..., None, 3], v[..., :-1]], -1)  # speed entering step k
+        limit = max_yaw_rate(before, c.yaw_gain, c.lateral_limit)
+    x0, y0, yaw0 = state[..., 0, None], state[..., 1, None], state[..., 2, None]
+
+    def rollout(tokens: torch.Tensor) -> torch.Tensor:
+        rate = model.denormalize(tokens)[..., 1].repeat_interleave(c.action_stride, -1)
+        rate = torch.maximum(torch.minimum(rate, limit), -limit)
+        yaw = yaw0 + c.dt * rate.cumsum(-1)
+        x = x0 + c.dt * (v * torch.cos(yaw)).cumsum(-1)
+        y = y0 + c.dt * (v * torch.sin(yaw)).cumsum(-1)
+        return torch.stack([x, y], -1)
+
+    return rollout

@@ -89,8 +89,18 @@ class TrainConfig:
     off_lane_weight: float = 0.0
 
 
-# ModelConfig fields that choose the window's lanes but size no tensor (``--init`` may change them).
-WINDOW_MAP_FIELDS = ("num_lanes", "map_radius", "lane_anchors")
+# ModelConfig fields that size no tensor, so ``--init`` may change them: which lanes the window
+# holds, and how the model samples.
+UNSIZED_FIELDS = (
+    "num_lanes",
+    "map_radius",
+    "lane_anchors",
+    "sampler",
+    "sampling_steps",
+    "eta",
+    "map_guidance",
+    "lane_steering",
+)
 
 
 def _windows(ds: SceneWindowDataset, rows: Sequence[int]) -> dict[str, torch.Tensor]:
@@ -197,10 +207,11 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         from counterscene_env.world_model.checkpoint import load_model
 
         start = load_model(cfg.init)
-        # Which lanes the window holds sizes no tensor, so a fine-tune may change it. A model
-        # without the agent-centric map may seed one with it: the new modules start at zero
-        # output, so the fine-tune starts from the initial model's exact predictions.
-        same = start.config.replace(**{k: getattr(model_cfg, k) for k in WINDOW_MAP_FIELDS})
+        # Which lanes the window holds and how it samples size no tensor, so a fine-tune may
+        # change them. A model without the agent-centric map may seed one with it: the new
+        # modules start at zero output, so the fine-tune starts from the initial model's exact
+        # predictions.
+        same = start.config.replace(**{k: getattr(model_cfg, k) for k in UNSIZED_FIELDS})
         adds_local = start.config.local_lanes == 0 and model_cfg.local_lanes > 0
         if adds_local:
             same = same.replace(
