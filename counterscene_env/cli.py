@@ -153,6 +153,12 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--seed", type=int, default=100000, help="first seed (default 100000)")
     ev.add_argument("--model", default="default", help="model directory (default: shipped)")
     ev.add_argument("--samples", type=int, default=6, help="samples per scene (default 6)")
+    ev.add_argument(
+        "--lane-steering",
+        type=int,
+        metavar="N",
+        help="Adam steps of final-step lane keeping (default: the model's; 0: the network alone)",
+    )
     ev.add_argument("--json", action="store_true", help="print one JSON object")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(func=_cmd_evaluate_model)
@@ -452,6 +458,10 @@ def _cmd_evaluate_model(args: argparse.Namespace) -> int:
     from counterscene_env.world_model.evaluate import evaluate_model
 
     model = _load_model(args.model)
+    if args.lane_steering is not None:
+        if args.lane_steering < 0:
+            raise ValueError(f"--lane-steering must be >= 0, got {args.lane_steering}")
+        model.config = model.config.replace(lane_steering=args.lane_steering)
     if args.scenario:
         from counterscene_env.scene.highway import generate
 

@@ -260,8 +260,11 @@ def test_guidance_moves_the_samples(tiny):
     def accelerate(mean, sigma, t, x0):
         return torch.full_like(mean, 0.0) + push
 
-    plain = tiny.sample(batch, 1, torch.Generator().manual_seed(0))
-    guided = tiny.sample(batch, 1, torch.Generator().manual_seed(0), guidance=accelerate)
+    # Final-step lane keeping off: the hook alone decides the actions.
+    plain = tiny.sample(batch, 1, torch.Generator().manual_seed(0), lane_steering=0)
+    guided = tiny.sample(
+        batch, 1, torch.Generator().manual_seed(0), guidance=accelerate, lane_steering=0
+    )
     valid = guided.valid[0]
     torch.testing.assert_close(
         guided.actions[0, 0][valid], torch.tensor([3.0, 0.0]).expand_as(guided.actions[0, 0][valid])
@@ -351,10 +354,13 @@ def test_map_guidance_pulls_samples_toward_the_lanes(tiny, scene_batch):
     assert off(1.0) < off(0.0)
 
 
-def test_lane_steering_turns_a_drifting_car_back_onto_the_road(tiny):
+def test_lane_steering_turns_a_drifting_car_back_onto_the_road():
     """Final-step lane keeping: a plan that curves off the road is steered back onto a lane by
     its yaw rates alone; a car that is off every lane now is left alone."""
     from counterscene_env.world_model.map_guidance import lane_excess, steer_onto_lanes
+
+    # The shipped model's action scales (yaw rate: 0.3 rad/s per normalised unit).
+    tiny = _model(normalization=Normalization((0.0, 0.0), (1.4, 0.3)))
 
     # Cars on the lanes y = 0 and y = 4 (road y in [-2, 6]) and one parked on the verge at
     # y = -12; every plan turns left at 0.15 rad/s, which leaves the road within 3 s.
@@ -375,6 +381,19 @@ def test_lane_steering_turns_a_drifting_car_back_onto_the_road(tiny):
     assert torch.equal(steered[..., 0], x[..., 0])  # acceleration is never touched
     assert torch.equal(steered[0, 2:], x[0, 2:])  # the parked car and padding: unchanged
     assert steer_onto_lanes(tiny, batch, x, 0) is x
+
+
+def test_steering_rollout_is_the_unicycle_with_fixed_accelerations(tiny):
+    from counterscene_env.world_model.map_guidance import _steering_rollout
+
+    g = torch.Generator().manual_seed(0)
+    c = tiny.config
+    x = torch.randn(3, c.num_agents, c.action_tokens, 2, generator=g)
+    state = torch.rand(3, c.num_agents, 4, generator=g) * torch.tensor([50.0, 50.0, 6.0, 20.0])
+    turned = x.clone()
+    turned[..., 1] += torch.randn(turned.shape[:-1], generator=g)
+    fast = _steering_rollout(tiny, x, state)(turned)
+    torch.testing.assert_close(fast, tiny.rollout(turned, state)[..., :2], rtol=0, atol=1e-3)
 
 
 def test_learning_rate_schedule():

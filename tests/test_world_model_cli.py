@@ -11,6 +11,7 @@ from safetensors.torch import load_file
 
 from counterscene_env.cli import main
 from counterscene_env.world_model.checkpoint import load_model
+from counterscene_env.world_model.config import preset
 
 TINY = ["--set", "d_model=32", "--set", "num_heads=2", "--set", "num_blocks=1"]
 
@@ -153,6 +154,14 @@ def test_evaluate_model_json(trained, dataset, capsys):
     assert cv["ade"]["1s"] <= cv["ade"]["full"]
     for h in hz:
         assert model["min_ade_6"][h] <= model["ade"][h] + 1e-9
+    # The tiny model samples with the preset's lane keeping; --lane-steering 0 turns it off
+    # (the network alone), which changes the trajectories and so the errors.
+    assert result["lane_steering"] == preset("default").lane_steering > 0
+    assert main([*argv, "--samples", "2", "--quiet", "--lane-steering", "0"]) == 0
+    raw = json.loads(capsys.readouterr().out)
+    assert raw["lane_steering"] == 0 and raw["model"]["ade"] != model["ade"]
+    assert main([*argv, "--quiet", "--lane-steering", "-1"]) == 1
+    assert "--lane-steering must be >= 0" in capsys.readouterr().err
 
 
 def test_evaluate_model_missing_model(dataset, capsys):

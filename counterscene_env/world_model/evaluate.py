@@ -152,6 +152,7 @@ def evaluate_model(
         "agents": agents,
         "samples": num_samples,
         "horizon_s": model.config.horizon,
+        "lane_steering": model.config.lane_steering,
         "model": {
             "ade": ours.result("ade"),
             "fde": ours.result("fde"),

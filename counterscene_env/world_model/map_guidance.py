@@ -74,7 +74,6 @@ def make_map_guidance(model, batch: dict[str, torch.Tensor], num_samples: int, s
 
 
 LANE_MARGIN = 0.2  # m: steered points end at least this far inside a lane strip's edge
-REFRESH = 1000  # iterations between updates of the candidate segments
 CANDIDATES = 6  # lane segments per predicted point that the steering may aim at
 STEER_LR = 0.1  # Adam step on the normalised yaw-rate tokens
 STEER_PRIOR = 0.01  # weight of the squared change of the tokens (normalised units)
@@ -98,9 +97,9 @@ def steer_onto_lanes(
     lies outside the nearest candidate strip narrowed by ``LANE_MARGIN``, plus
     ``STEER_PRIOR`` x the squared change of its tokens. Acceleration is never touched: braking
     is the cheapest way to stay on a lane (a car that stops stays where it is), and it is not
-    what an under-turning sample gets wrong. The candidates are each point's ``CANDIDATES``
-    nearest segments before the correction, so one step costs ``K x F x CANDIDATES`` distances
-    per sample instead of every segment of the map.
+    what an under-turning sample gets wrong. Each agent keeps the iterate of lowest cost. The
+    candidates are each point's ``CANDIDATES`` nearest segments before the correction, so one
+    step costs ``K x F x CANDIDATES`` distances per sample instead of every segment of the map.
 
     Args:
         model: the ``WorldModel`` that sampled (its rollout and normalisation).
@@ -151,23 +150,32 @@ def steer_onto_lanes(
     steer = torch.zeros_like(normalized)
     steer[..., 1] = 1.0  # only the yaw-rate channel moves
     steer = steer * guided[..., None, None]
+    with torch.no_grad():  # refreshing them as the points move bought little for its cost
+        ca, cb, ch, cok = candidates(rollout(normalized))
     delta = torch.zeros_like(normalized, requires_grad=True)
     opt = torch.optim.Adam([delta], lr=STEER_LR)
-    for i in range(iterations):
-        if i % REFRESH == 0:  # the nearest segments move with the points
-            with torch.no_grad():
-                ca, cb, ch, cok = candidates(rollout(normalized + delta * steer))
+    # Adam on a hinge overshoots: once a plan is on the lane its gradient vanishes, and the
+    # prior and the momentum carry it back off. So each agent keeps its best iterate.
+    best = torch.zeros_like(normalized)
+    best_cost = torch.full(guided.shape, torch.inf, device=normalized.device)
+    for i in range(iterations + 1):
         with torch.enable_grad():
             change = delta * steer
             p = rollout(normalized + change)  # [N, K, F, 2]
             dist = _segment_distance(p[..., None, :], ca, cb) - ch  # [N, K, F, C]
             excess = torch.where(cok, dist, 1e3).amin(-1).clamp(min=0)  # [N, K, F]
             excess = torch.where(guided[..., None], excess, 0.0)
-            loss = (excess**2).mean(-1).sum() + STEER_PRIOR * (change**2).sum()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-        opt.step()
-    return (normalized + delta.detach() * steer).detach()
+            cost = (excess**2).mean(-1) + STEER_PRIOR * (change**2).sum((-1, -2))  # [N, K]
+            if i < iterations:
+                opt.zero_grad(set_to_none=True)
+                cost.sum().backward()
+        with torch.no_grad():
+            better = cost < best_cost
+            best = torch.where(better[..., None, None], delta, best)
+            best_cost = torch.where(better, cost, best_cost)
+        if i < iterations:
+            opt.step()
+    return (normalized + best * steer).detach()
 
 
 def _steering_rollout(model, normalized: torch.Tensor, state: torch.Tensor):
