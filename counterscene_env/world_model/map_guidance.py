@@ -1,13 +1,18 @@
-"""Map guidance: keep sampled trajectories on the lanes (paper hyper-parameter "map guidance").
+"""Keeping sampled trajectories on the lanes (paper hyper-parameters "map guidance" and
+"final-step guidance").
 
-The denoiser already sees the lanes (cross-attention); like the public CounterScene/CCDiff code we
-also guide every agent's posterior mean toward the road while sampling. The loss is the squared
-distance by which each predicted centre lies outside the nearest lane strip of the window's map
-(``|p - segment| - width / 2``, hinged at 0), averaged over the horizon.
+Two tools, both measured in docs/world_model.md:
 
-Only agents that are on a lane of the window at "now" are guided: the window holds the lanes
-nearest the ego, so an agent far away may have no lane of its own in it, and pulling it toward
-someone else's lane would be wrong.
+- ``make_map_guidance``: like the public CounterScene/CCDiff code, a guidance hook that moves
+  every on-lane agent's posterior mean down the gradient of its off-lane loss while sampling
+  (``ModelConfig.map_guidance``, off by default: it costs more accuracy than it buys).
+- ``steer_onto_lanes``: final-step lane keeping, a correction of the finished samples' yaw
+  rates (``ModelConfig.lane_steering``, on in both presets).
+
+The off-lane loss is the distance by which a predicted centre lies outside the nearest lane
+strip of the window's map (``|p - segment| - width / 2``, hinged at 0). Only agents on a lane
+of the window at "now" are guided or steered: a car parked on the verge, or one whose road the
+window does not hold, must not be pulled onto someone else's lane.
 """
 
 from __future__ import annotations
