@@ -8,7 +8,8 @@ toward the edge steers back; this module is that reflex, applied by
 - only a step that would take a centre from the drivable area to outside it is changed;
 - the new centre is the planned one moved sideways into the nearest lane strip whose direction
   is within :data:`MAX_HEADING_GAP` of the agent's course, :data:`EDGE_MARGIN` inside its edge
-  (the progress along the road is kept, so is the speed);
+  (the progress along the road is kept, so is the speed), if that is at most
+  :data:`MAX_SHIFT` away;
 - the course becomes the direction of that corrected step, and the next replan starts the
   world model from there.
 
@@ -25,6 +26,10 @@ import numpy as np
 EDGE_MARGIN = 0.3
 #: A lane is "going the agent's way" if its direction is within this of the agent's course [rad].
 MAX_HEADING_GAP = math.radians(60.0)
+#: The farthest a centre is moved [m]. A correction steers back onto the lane the car is
+#: drifting off; the nearest lane going its way may lie across a junction (a turning car's
+#: course points at the crossing road), and moving there would teleport the car.
+MAX_SHIFT = 5.0
 
 
 def lane_pieces(lines: np.ndarray, widths: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -51,7 +56,8 @@ def keep_on_lane(
     """``point`` ``[2]`` m moved sideways into the nearest lane strip going ``course`` (rad).
 
     Unchanged if it already lies :data:`EDGE_MARGIN` inside that strip; None if no lane of
-    ``pieces`` (:func:`lane_pieces`) goes the agent's way.
+    ``pieces`` (:func:`lane_pieces`) goes the agent's way, or if reaching the nearest would
+    move it more than :data:`MAX_SHIFT`.
     """
     start, end, half, direction = pieces
     if not len(start):
@@ -69,4 +75,6 @@ def keep_on_lane(
     limit = max(half[q] - EDGE_MARGIN, 0.0)
     if dist[q] <= limit:
         return point
+    if dist[q] - limit > MAX_SHIFT:
+        return None
     return foot[q] + offset[q] * (limit / dist[q])

@@ -37,6 +37,16 @@ def test_only_a_lane_going_the_agents_way_counts():
     assert road_keeping.keep_on_lane(point, math.pi / 2, PIECES) is None
 
 
+def test_a_lane_going_the_agents_way_but_far_away_is_no_correction():
+    # 25 m north of the westbound lane, heading west: the nearest lane going that way lies
+    # beyond MAX_SHIFT. A correction there would teleport the car (a turning car at a junction
+    # did: 25 m in one step); it is left to leave the road instead.
+    far = np.array([30.0, 10.0 + 2.0 + road_keeping.MAX_SHIFT + 1.0])
+    assert road_keeping.keep_on_lane(far, math.pi, PIECES) is None
+    near = np.array([30.0, 10.0 + 2.0 + road_keeping.MAX_SHIFT - 1.0])
+    np.testing.assert_allclose(road_keeping.keep_on_lane(near, math.pi, PIECES), [30, 11.7])
+
+
 @pytest.mark.usefixtures("one_torch_thread")
 @pytest.mark.parametrize("keep", [True, False])
 def test_traffic_drifting_off_the_road_is_kept_on_it(keep):
