@@ -423,8 +423,8 @@ def test_off_lane_term_counts_only_where_the_log_keeps_to_a_lane(tiny):
     # In the loss, the term adds its weight times its value (same noise, same draw).
     g = lambda: torch.Generator().manual_seed(3)  # noqa: E731
     plain, weighted = tiny.loss(batch, g()), tiny.loss(batch, g(), off_lane_weight=2.0)
-    assert float(weighted["loss"]) == pytest.approx(
-        float(plain["loss"]) + 2.0 * float(weighted["off_lane"]), rel=1e-5
+    assert float(weighted["loss"].detach()) == pytest.approx(
+        float(plain["loss"].detach()) + 2.0 * float(weighted["off_lane"]), rel=1e-5
     )
 
 
