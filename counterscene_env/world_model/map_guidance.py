@@ -22,6 +22,17 @@ import torch
 from counterscene_env.dynamics import max_yaw_rate
 
 ON_LANE_TOLERANCE = 1.0  # m outside a lane strip at "now" that still counts as on a lane
+LANE_MARGIN = 0.2  # m: steered points end at least this far inside a lane strip's edge
+CANDIDATES = 6  # lane segments per predicted point that the steering may aim at
+STEER_LR = 0.1  # Adam step on the normalised yaw-rate tokens
+STEER_PRIOR = 0.01  # weight of the squared change of the tokens (normalised units)
+
+
+def _segment_distance(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Distance [m] of points ``p [..., 2]`` to segments ``a -> b [..., 2]`` (broadcast)."""
+    ab = b - a
+    u = (((p - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp(min=1e-9)).clamp(0, 1)
+    return (p - (a + u[..., None] * ab)).norm(dim=-1)
 
 
 def lane_excess(
@@ -41,10 +52,7 @@ def lane_excess(
     a, b = a.reshape(N, 1, 1, M * S, 2), b.reshape(N, 1, 1, M * S, 2)
     half = (widths / 2)[:, :, None].expand(N, M, S).reshape(N, 1, 1, M * S)
     ok = lanes_valid[:, :, None].expand(N, M, S).reshape(N, 1, 1, M * S)
-    ab = b - a
-    p = points[..., None, :]  # [N, A, T, 1, 2]
-    u = (((p - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp(min=1e-9)).clamp(0, 1)
-    dist = (p - (a + u[..., None] * ab)).norm(dim=-1)  # [N, A, T, M*S]
+    dist = _segment_distance(points[..., None, :], a, b)  # [N, A, T, M*S]
     excess = torch.where(ok, (dist - half).clamp(min=0), torch.full_like(dist, 1e3))
     return excess.min(dim=-1).values
 
@@ -76,19 +84,6 @@ def make_map_guidance(model, batch: dict[str, torch.Tensor], num_samples: int, s
         return mean + torch.where(guided[..., None, None], delta, 0.0)
 
     return hook
-
-
-LANE_MARGIN = 0.2  # m: steered points end at least this far inside a lane strip's edge
-CANDIDATES = 6  # lane segments per predicted point that the steering may aim at
-STEER_LR = 0.1  # Adam step on the normalised yaw-rate tokens
-STEER_PRIOR = 0.01  # weight of the squared change of the tokens (normalised units)
-
-
-def _segment_distance(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Distance [m] of points ``p [..., 2]`` to segments ``a -> b [..., 2]`` (broadcast)."""
-    ab = b - a
-    u = (((p - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp(min=1e-9)).clamp(0, 1)
-    return (p - (a + u[..., None] * ab)).norm(dim=-1)
 
 
 def steer_onto_lanes(
