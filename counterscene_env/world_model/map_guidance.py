@@ -57,20 +57,26 @@ def lane_excess(
     return excess.min(dim=-1).values
 
 
+def _on_lane_agents(model, batch: dict[str, torch.Tensor], num_samples: int):
+    """The window's lanes and the agents' current states, repeated for ``num_samples`` samples
+    per scene (``N = B * S`` rows), and ``guided [N, K]``: the real agents on a lane now."""
+    lanes = batch["map"].repeat_interleave(num_samples, 0)  # [N, M, P, 2]
+    lanes_ok = batch["map_valid"].repeat_interleave(num_samples, 0)
+    widths = batch["map_widths"].repeat_interleave(num_samples, 0)
+    state = model.current_state(batch).repeat_interleave(num_samples, 0)  # [N, K, 4]
+    valid = model.agent_mask(batch).repeat_interleave(num_samples, 0)
+    with torch.no_grad():
+        now = lane_excess(state[:, :, None, :2], lanes, lanes_ok, widths)[..., 0]
+    return lanes, lanes_ok, widths, state, valid & (now <= ON_LANE_TOLERANCE)
+
+
 def make_map_guidance(model, batch: dict[str, torch.Tensor], num_samples: int, step_size: float):
     """A ``guidance(mean, sigma, t, x0)`` hook that moves the posterior mean of on-lane agents
     down the gradient of the off-lane loss: ``mean - step_size * grad``, clipped to ``+-sigma``
     so guidance never moves a sample further than the noise of that step would; at the last
     step (``sigma = 0``) it does nothing.
     """
-    lanes = batch["map"].repeat_interleave(num_samples, 0)
-    lanes_ok = batch["map_valid"].repeat_interleave(num_samples, 0)
-    widths = batch["map_widths"].repeat_interleave(num_samples, 0)
-    state = model.current_state(batch).repeat_interleave(num_samples, 0)  # [N, K, 4]
-    valid = model.agent_mask(batch).repeat_interleave(num_samples, 0)
-    with torch.no_grad():
-        now_excess = lane_excess(state[:, :, None, :2], lanes, lanes_ok, widths)[..., 0]
-    guided = valid & (now_excess <= ON_LANE_TOLERANCE)  # [N, K]
+    lanes, lanes_ok, widths, state, guided = _on_lane_agents(model, batch, num_samples)
 
     def hook(mean: torch.Tensor, sigma: float, t: int, x0: torch.Tensor) -> torch.Tensor:
         if sigma <= 0 or not guided.any():
@@ -115,20 +121,13 @@ def steer_onto_lanes(
     if iterations <= 0:
         return normalized
     S = normalized.shape[0] // batch["map"].shape[0]
-    lanes = batch["map"].repeat_interleave(S, 0)  # [N, M, P, 2]
-    lanes_ok = batch["map_valid"].repeat_interleave(S, 0)
-    widths = batch["map_widths"].repeat_interleave(S, 0)
-    state = model.current_state(batch).repeat_interleave(S, 0)  # [N, K, 4]
-    valid = model.agent_mask(batch).repeat_interleave(S, 0)
-    with torch.no_grad():
-        now = lane_excess(state[:, :, None, :2], lanes, lanes_ok, widths)[..., 0]
-        guided = valid & (now <= ON_LANE_TOLERANCE)  # [N, K]
-        if not guided.any() or not lanes_ok.any():
-            return normalized
-        N, M, P, _ = lanes.shape
-        a, b = lanes[:, :, :-1].reshape(N, -1, 2), lanes[:, :, 1:].reshape(N, -1, 2)
-        half = (widths[:, :, None] / 2 - LANE_MARGIN).expand(N, M, P - 1).reshape(N, -1)
-        ok = lanes_ok[:, :, None].expand(N, M, P - 1).reshape(N, -1)
+    lanes, lanes_ok, widths, state, guided = _on_lane_agents(model, batch, S)
+    if not guided.any() or not lanes_ok.any():
+        return normalized
+    N, M, P, _ = lanes.shape  # segments: [N, M * (P - 1)] ends, allowed half-widths, validity
+    a, b = lanes[:, :, :-1].reshape(N, -1, 2), lanes[:, :, 1:].reshape(N, -1, 2)
+    half = (widths[:, :, None] / 2 - LANE_MARGIN).expand(N, M, P - 1).reshape(N, -1)
+    ok = lanes_ok[:, :, None].expand(N, M, P - 1).reshape(N, -1)
     rollout = _steering_rollout(model, normalized, state)
 
     def candidates(xy: torch.Tensor) -> tuple[torch.Tensor, ...]:
