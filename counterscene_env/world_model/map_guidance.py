@@ -129,28 +129,20 @@ def steer_onto_lanes(
     half = (widths[:, :, None] / 2 - LANE_MARGIN).expand(N, M, P - 1).reshape(N, -1)
     ok = lanes_ok[:, :, None].expand(N, M, P - 1).reshape(N, -1)
     rollout = _steering_rollout(model, normalized, state)
-
-    def candidates(xy: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """Each point of ``xy [N, K, F, 2]``: its ``CANDIDATES`` nearest segments' ends,
-        allowed half-widths and validity, ``[N, K, F, C, ...]``."""
-        K, F = xy.shape[1:3]
-        gap = _segment_distance(xy.reshape(N, -1, 1, 2), a[:, None], b[:, None]) - half[:, None]
-        gap = torch.where(ok[:, None], gap, torch.inf)  # [N, K*F, M*(P-1)]
+    # Each predicted point aims at its CANDIDATES nearest segments, chosen once: refreshing
+    # them as the points move bought little for its cost.
+    with torch.no_grad():
+        xy = rollout(normalized)  # [N, K, F, 2]
+        gap = _segment_distance(xy.flatten(1, 2)[:, :, None], a[:, None], b[:, None])
+        gap = torch.where(ok[:, None], gap - half[:, None], torch.inf)  # [N, K*F, M*(P-1)]
         idx = gap.topk(min(CANDIDATES, gap.shape[-1]), dim=-1, largest=False).indices
-        flat = idx.reshape(N, -1)
-
-        def pick(t: torch.Tensor) -> torch.Tensor:
-            shape = (N, flat.shape[1], *t.shape[2:])
-            out = t.gather(1, flat.reshape(*flat.shape, *[1] * (t.dim() - 2)).expand(shape))
-            return out.reshape(N, K, F, idx.shape[-1], *t.shape[2:])
-
-        return pick(a), pick(b), pick(half), pick(ok)
-
+        scene = torch.arange(N, device=idx.device)[:, None, None]
+        shape = (*xy.shape[:3], idx.shape[-1])  # [N, K, F, C]
+        ca, cb = a[scene, idx].reshape(*shape, 2), b[scene, idx].reshape(*shape, 2)
+        ch, cok = half[scene, idx].reshape(shape), ok[scene, idx].reshape(shape)
     steer = torch.zeros_like(normalized)
     steer[..., 1] = 1.0  # only the yaw-rate channel moves
     steer = steer * guided[..., None, None]
-    with torch.no_grad():  # refreshing them as the points move bought little for its cost
-        ca, cb, ch, cok = candidates(rollout(normalized))
     delta = torch.zeros_like(normalized, requires_grad=True)
     opt = torch.optim.Adam([delta], lr=STEER_LR)
     # Adam on a hinge overshoots: once a plan is on the lane its gradient vanishes, and the
