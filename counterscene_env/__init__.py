@@ -13,18 +13,21 @@ Importing the package registers (idempotently; gymnasium ignores entry points):
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from importlib.metadata import version
+from typing import Any
 
-__version__ = "0.1.0"
+from pettingzoo import ParallelEnv
 
-if TYPE_CHECKING:
-    from counterscene_env.envs.parallel import CounterSceneParallelEnv
+from counterscene_env.config import Scenario
+
+__version__ = version("counterscene-env")
 
 ENV_ID = "CounterScene-v0"
-SCENARIO_VARIANTS = ("highway", "merge", "intersection", "roundabout")
+#: Scenarios with a registered variant ``CounterScene-{scenario}-v0``.
+SCENARIO_VARIANTS = Scenario.values()
 
 
-def parallel_env(num_egos: int = 1, **kwargs: Any) -> CounterSceneParallelEnv:
+def parallel_env(num_egos: int = 1, **kwargs: Any) -> ParallelEnv:
     """The PettingZoo ``ParallelEnv``: ``num_egos`` external policies ``ego_0 ..`` each with
     its own causally selected adversary (``counterscene_env.envs.parallel``)."""
     from counterscene_env.envs.parallel import CounterSceneParallelEnv
@@ -42,10 +45,8 @@ def _register() -> None:
         variant = f"CounterScene-{scenario}-v0"
         if variant not in gymnasium.registry:
             gymnasium.register(id=variant, entry_point=entry, kwargs={"scenario": scenario})
-    try:
-        import pettingzoo
-    except ImportError:  # pragma: no cover - pettingzoo is a dependency
-        return
+    import pettingzoo
+
     registry = getattr(pettingzoo, "parallel_registry", None)
     if registry is not None and ENV_ID not in registry:
         pettingzoo.register("parallel", ENV_ID, entry_point="counterscene_env:parallel_env")

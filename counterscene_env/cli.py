@@ -20,6 +20,8 @@ import sys
 import time
 from pathlib import Path
 
+from counterscene_env.config import Scenario  # a light module: --help stays instant
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
@@ -36,15 +38,52 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from counterscene_env import __version__
+    """The ``counterscene`` argument parser with one subparser per command."""
+    from importlib.metadata import version
 
+    __version__ = version("counterscene-env")
     parser = argparse.ArgumentParser(
         prog="counterscene",
         description="CounterScene: adversarial multi-agent driving scenes and environments.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    _add_generate(sub)
+    _add_inspect(sub)
+    _add_train(sub)
+    _add_evaluate_model(sub)
+    _add_bench(sub)
+    _add_bench_env(sub)
+    _add_stress(sub)
+    return parser
 
+
+#: The highway-env roads ``generate`` and ``evaluate-model`` can record scenes on.
+_SCENARIO_CHOICES = Scenario.values()
+
+
+def _add_model_flag(p: argparse.ArgumentParser) -> None:
+    """Add ``--model DIR`` (a world-model checkpoint directory; default: the shipped one)."""
+    p.add_argument("--model", default="default", help="model directory (default: shipped)")
+
+
+def _add_json_flag(p: argparse.ArgumentParser, help: str = "print one JSON object") -> None:
+    """Add ``--json`` (print the result as one JSON object instead of a table)."""
+    p.add_argument("--json", action="store_true", help=help)
+
+
+def _add_quiet_flag(p: argparse.ArgumentParser) -> None:
+    """Add ``--quiet`` (no progress bar)."""
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _add_seed_flag(p: argparse.ArgumentParser, default: int, help: str) -> None:
+    """Add ``--seed N`` (an int) with the given default and help text."""
+    p.add_argument("--seed", type=int, default=default, help=help)
+
+
+def _add_generate(sub) -> None:
+    """Register ``counterscene generate``."""
     gen = sub.add_parser(
         "generate",
         help="generate a dataset of scenes (highway-env traffic or ScenarioNet logs)",
@@ -56,19 +95,22 @@ def _parser() -> argparse.ArgumentParser:
     src = gen.add_mutually_exclusive_group(required=True)
     src.add_argument(
         "--scenario",
-        choices=("highway", "merge", "intersection", "roundabout"),
+        choices=_SCENARIO_CHOICES,
         help="highway-env road to record traffic on",
     )
     src.add_argument("--from-scenarionet", metavar="DIR", help="convert ScenarioNet .pkl files")
     gen.add_argument("--scenes", type=int, default=100, help="scenes to generate (default 100)")
-    gen.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
+    _add_seed_flag(gen, 0, "first seed (default 0)")
     gen.add_argument("--out", required=True, metavar="DIR", help="output dataset directory")
     gen.add_argument("--duration", type=float, default=13.0, help="log length in s (default 13)")
     gen.add_argument("--shard-size", type=int, default=50, help="seeds or files per shard")
     gen.add_argument("--workers", type=int, default=1, help="parallel worker processes")
-    gen.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_quiet_flag(gen)
     gen.set_defaults(func=_cmd_generate)
 
+
+def _add_inspect(sub) -> None:
+    """Register ``counterscene inspect``."""
     ins = sub.add_parser(
         "inspect",
         help="report size, timing and factual metrics of scenes",
@@ -78,7 +120,7 @@ def _parser() -> argparse.ArgumentParser:
         ),
     )
     ins.add_argument("path", help="scenes to inspect")
-    ins.add_argument("--json", action="store_true", help="print one JSON object")
+    _add_json_flag(ins)
     ins.add_argument(
         "--smooth",
         type=float,
@@ -87,6 +129,9 @@ def _parser() -> argparse.ArgumentParser:
     )
     ins.set_defaults(func=_cmd_inspect)
 
+
+def _add_train(sub) -> None:
+    """Register ``counterscene train``."""
     tr = sub.add_parser(
         "train",
         help="train a world model (resumable)",
@@ -110,7 +155,7 @@ def _parser() -> argparse.ArgumentParser:
         help="step from which the learning rate falls linearly to lr/10 at --steps (default: none)",
     )
     tr.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
-    tr.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    _add_seed_flag(tr, 0, "seed (default 0)")
     tr.add_argument("--device", default="cpu", help="torch device (default cpu)")
     tr.add_argument(
         "--set",
@@ -129,9 +174,12 @@ def _parser() -> argparse.ArgumentParser:
         help="weight of the loss term on predicted points off the lanes the log follows "
         "(default 0: left out; the shipped model used 1.0)",
     )
-    tr.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_quiet_flag(tr)
     tr.set_defaults(func=_cmd_train)
 
+
+def _add_evaluate_model(sub) -> None:
+    """Register ``counterscene evaluate-model``."""
     ev = sub.add_parser(
         "evaluate-model",
         help="open-loop prediction metrics of a world model vs constant velocity",
@@ -142,7 +190,7 @@ def _parser() -> argparse.ArgumentParser:
         ),
     )
     ev_src = ev.add_mutually_exclusive_group(required=True)
-    ev_src.add_argument("--scenario", choices=("highway", "merge", "intersection", "roundabout"))
+    ev_src.add_argument("--scenario", choices=_SCENARIO_CHOICES)
     ev_src.add_argument("--scenarionet", metavar="DIR", help="ScenarioNet .pkl file or directory")
     ev_src.add_argument(
         "--data", nargs="+", metavar="DIR", help="dataset directories or shards (pooled)"
@@ -150,8 +198,8 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument(
         "--scenes", type=int, default=50, help="scenes (per --data dataset; default 50)"
     )
-    ev.add_argument("--seed", type=int, default=100000, help="first seed (default 100000)")
-    ev.add_argument("--model", default="default", help="model directory (default: shipped)")
+    _add_seed_flag(ev, 100000, "first seed (default 100000)")
+    _add_model_flag(ev)
     ev.add_argument("--samples", type=int, default=6, help="samples per scene (default 6)")
     ev.add_argument(
         "--lane-steering",
@@ -159,10 +207,13 @@ def _parser() -> argparse.ArgumentParser:
         metavar="N",
         help="Adam steps of final-step lane keeping (default: the model's; 0: the network alone)",
     )
-    ev.add_argument("--json", action="store_true", help="print one JSON object")
-    ev.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_json_flag(ev)
+    _add_quiet_flag(ev)
     ev.set_defaults(func=_cmd_evaluate_model)
 
+
+def _add_bench(sub) -> None:
+    """Register ``counterscene bench``."""
     be = sub.add_parser(
         "bench",
         help="latency and FLOPs of one world-model sampling call",
@@ -172,14 +223,17 @@ def _parser() -> argparse.ArgumentParser:
             "the fraction of this CPU's measured matmul peak."
         ),
     )
-    be.add_argument("--model", default="default", help="model directory (default: shipped)")
+    _add_model_flag(be)
     be.add_argument("--preset", help="benchmark an untrained model of this preset instead")
     be.add_argument("--runs", type=int, default=50, help="timed calls (default 50)")
     be.add_argument("--samples", type=int, default=1, help="samples per call (default 1)")
     be.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
-    be.add_argument("--json", action="store_true", help="print one JSON object")
+    _add_json_flag(be)
     be.set_defaults(func=_cmd_bench)
 
+
+def _add_bench_env(sub) -> None:
+    """Register ``counterscene bench-env``."""
     bv = sub.add_parser(
         "bench-env",
         help="steps per second of CounterScene-v0",
@@ -190,7 +244,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     bv.add_argument("--scenario", default="intersection", help="scenario (default intersection)")
     bv.add_argument("--steps", type=int, default=500, help="env steps (default 500)")
-    bv.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    _add_seed_flag(bv, 0, "seed (default 0)")
     bv.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
     bv.add_argument(
         "--policy",
@@ -205,9 +259,12 @@ def _parser() -> argparse.ArgumentParser:
         metavar="KEY=VALUE",
         help="other config keys (JSON values), e.g. policy_frequency=2 guidance=none",
     )
-    bv.add_argument("--json", action="store_true", help="print one JSON object")
+    _add_json_flag(bv)
     bv.set_defaults(func=_cmd_bench_env)
 
+
+def _add_stress(sub) -> None:
+    """Register ``counterscene stress``."""
     st = sub.add_parser(
         "stress",
         help="stress-test an ego planner against guided world-model traffic",
@@ -224,7 +281,7 @@ def _parser() -> argparse.ArgumentParser:
         help="highway, merge, intersection, roundabout, or scenarionet:DIR",
     )
     st.add_argument("--episodes", type=int, default=50, help="episodes (default 50)")
-    st.add_argument("--seed", type=int, default=100000, help="seed of episode 0 (default 100000)")
+    _add_seed_flag(st, 100000, "seed of episode 0 (default 100000)")
     st.add_argument(
         "--planner",
         default="idm",
@@ -240,64 +297,44 @@ def _parser() -> argparse.ArgumentParser:
             "the policy's observation and action; default: PATH.env.json next to the zip"
         ),
     )
-    st.add_argument(
-        "--selector",
-        default="causal",
-        choices=("causal", "random", "distance", "ttc"),
-        help="adversary selection (default causal)",
-    )
-    st.add_argument(
-        "--guidance",
-        default="full",
-        choices=(
-            "full",
-            "no_jerk",
-            "no_conflict_aware",
-            "no_progressive",
-            "no_adaptive",
-            "minimal",
-            "none",
-        ),
-        help="guidance preset (default full)",
-    )
-    st.add_argument(
-        "--source",
-        default="log",
-        choices=("log", "model"),
-        help="select on the factual future (log) or re-select on the model's prediction",
-    )
-    st.add_argument(
-        "--samples", type=int, default=4, help="samples per replan, best by guidance loss (4)"
-    )
-    st.add_argument("--duration", type=float, default=10.0, help="closed-loop seconds (10)")
-    st.add_argument("--replan-every", type=int, default=5, help="steps between replans (5)")
-    st.add_argument(
-        "--paper-gates",
-        action="store_true",
-        help="the paper's selection (no strict gates: parked or far adversaries allowed)",
-    )
-    st.add_argument(
-        "--no-yield",
-        action="store_true",
-        help="traffic follows its plans to the letter (no yielding rule; closed_loop.md)",
-    )
-    st.add_argument(
-        "--no-road-keeping",
-        action="store_true",
-        help="traffic may follow its plans off the road (no road keeping; closed_loop.md)",
-    )
+    _add_sim_flags(st)
     st.add_argument(
         "--batch",
         type=int,
         default=4,
         help="episodes advanced together (4; sb3 planners run one at a time)",
     )
-    st.add_argument("--model", default="default", help="model directory (default: shipped)")
-    st.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    _add_model_flag(st)
+    _add_json_flag(st, "print the summary as one JSON object")
     st.add_argument("--out", help="also write DIR/metrics.json and DIR/episodes.jsonl")
-    st.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_quiet_flag(st)
     st.set_defaults(func=_cmd_stress)
-    return parser
+
+
+#: Spellings of the closed-loop flags kept from before they were derived from SimConfig.
+_SIM_ALIASES = {"num_samples": ["--samples"], "selection_source": ["--source"]}
+_SIM_SWITCHES = {
+    "strict_gates": [
+        (
+            "--paper-gates",
+            False,
+            "the paper's selection (no strict gates: parked or far adversaries allowed)",
+        )
+    ],
+    "traffic_yields": [
+        ("--no-yield", False, "traffic follows its plans to the letter (no yielding rule)")
+    ],
+}  # --no-road-keeping is the generated negation of --road-keeping
+
+
+def _add_sim_flags(parser: argparse.ArgumentParser) -> None:
+    """One flag per ``SimConfig`` field (``--field-name``, help from its docstring), plus the
+    documented short spellings; :func:`_sim_config` turns them into a ``SimConfig``."""
+    from counterscene_env.config import add_arguments
+    from counterscene_env.sim.config import SimConfig
+
+    group = parser.add_argument_group("closed-loop settings (SimConfig; unset: its default)")
+    add_arguments(group, SimConfig, _SIM_ALIASES, _SIM_SWITCHES)
 
 
 def _cmd_bench_env(args: argparse.Namespace) -> int:
@@ -327,8 +364,15 @@ def _cmd_bench_env(args: argparse.Namespace) -> int:
     return 0
 
 
+def _sim_config(args: argparse.Namespace):
+    """The ``SimConfig`` of the given closed-loop flags (the rest at their defaults)."""
+    from counterscene_env.config import parsed_fields
+    from counterscene_env.sim.config import SimConfig
+
+    return SimConfig(**parsed_fields(args, SimConfig))
+
+
 def _cmd_stress(args: argparse.Namespace) -> int:
-    from counterscene_env.sim import SimConfig
     from counterscene_env.stress import (
         SB3_PREFIX,
         StressConfig,
@@ -338,17 +382,7 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         write_outputs,
     )
 
-    sim = SimConfig(
-        duration=args.duration,
-        replan_every=args.replan_every,
-        num_samples=args.samples,
-        selector=args.selector,
-        selection_source=args.source,
-        strict_gates=not args.paper_gates,
-        guidance=args.guidance,
-        traffic_yields=not args.no_yield,
-        road_keeping=not args.no_road_keeping,
-    )
+    sim = _sim_config(args)
     config = StressConfig(
         scenario=args.scenario,
         episodes=args.episodes,
@@ -378,8 +412,8 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         return 0
     print(
         f"{summary['episodes']} episodes of {args.scenario}, planner {args.planner}, selector "
-        f"{args.selector}, guidance {args.guidance} (source {args.source}, "
-        f"{args.samples} samples)"
+        f"{sim.selector}, guidance {sim.guidance} (source {sim.selection_source}, "
+        f"{sim.num_samples} samples)"
     )
     print(f"{'':8s}" + "".join(f"{k:>10s}" for k in ("ADE", "FDE", "ORR", "HBR", "CR")))
     for name, row in summary["horizons"].items():

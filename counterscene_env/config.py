@@ -1,12 +1,159 @@
-"""Shared helper of the frozen, documented config dataclasses (Waymax style)."""
+"""Configuration shared by every layer: the named choices, one checker, and keys and flags
+derived from the config dataclasses.
+
+Configs are frozen, documented dataclasses owned by the module they configure (Waymax style):
+``sim.SimConfig``, ``world_model.ModelConfig``, ``adversary.guidance.GuidanceConfig``. This
+module holds what they share, so that each setting has one source of truth:
+
+- **Choices** are :class:`Choice` enums (:class:`Scenario`, :class:`Selector`,
+  :class:`SelectionSource`, :class:`GuidancePreset`, :class:`Sampler`, ...). A field takes
+  either the enum member or its string (``Selector.TTC`` or ``"ttc"``) and stores the string,
+  so configs stay plain JSON. :meth:`Choice.parse` is the one checker; its error lists the
+  valid values.
+- :func:`from_mapping` builds a dataclass from a dict; an unknown key names the valid ones.
+- :func:`field_docs` reads a dataclass's ``Attributes:`` docstring section, and
+  :func:`add_arguments` / :func:`parsed_fields` turn its fields into ``argparse`` flags: a
+  field added to ``SimConfig`` (with its docstring entry) is a ``counterscene stress`` flag
+  and a ``CounterScene-v0`` config key without another line of code (docs/design.md,
+  "Configuration").
+
+This module imports nothing from the package: every layer may use it.
+"""
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
-from collections.abc import Mapping
-from typing import TypeVar
+import enum
+import inspect
+import re
+import typing
+from collections.abc import Mapping, Sequence
+from typing import Any, TypeVar
 
 T = TypeVar("T")
+
+
+class Choice(str, enum.Enum):
+    """A named choice. Members are their strings (``Selector.TTC == "ttc"``)."""
+
+    #: What the choice is called in error messages ("selector", "guidance preset", ...).
+    __label__: typing.ClassVar[str] = "choice"
+
+    def __str__(self) -> str:
+        return self.value
+
+    __format__ = str.__format__
+
+    @classmethod
+    def values(cls) -> tuple[str, ...]:
+        """The valid strings, in definition order."""
+        return tuple(m.value for m in cls)
+
+    @classmethod
+    def parse(cls, value: Any, key: str | None = None) -> str:
+        """``value`` as its plain string if it is one of the choices.
+
+        Raises:
+            ValueError: anything else; the message names the key (when given), the value and
+                the valid values.
+        """
+        if isinstance(value, cls):
+            return value.value
+        if isinstance(value, str) and value in cls.values():
+            return value
+        where = f" for {key!r}" if key and key.replace("_", " ") != cls.__label__ else ""
+        raise ValueError(f"unknown {cls.__label__} {value!r}{where}; valid: {list(cls.values())}")
+
+
+class Scenario(Choice):
+    """highway-env roads that scenes are recorded on (``scene.highway``)."""
+
+    __label__ = "scenario"
+    HIGHWAY = "highway"
+    MERGE = "merge"
+    INTERSECTION = "intersection"
+    ROUNDABOUT = "roundabout"
+
+
+#: Prefix of a ScenarioNet directory in a scenario spec (``scenarionet:DIR``).
+SCENARIONET_PREFIX = "scenarionet:"
+
+
+class Selector(Choice):
+    """Who becomes the adversary: the paper's causal conflict mining, or a baseline."""
+
+    __label__ = "selector"
+    CAUSAL = "causal"
+    RANDOM = "random"
+    DISTANCE = "distance"
+    TTC = "ttc"
+
+
+class SelectionSource(Choice):
+    """The future the adversary is selected on: the log (once), or the model (every replan)."""
+
+    __label__ = "selection source"
+    LOG = "log"
+    MODEL = "model"
+
+
+class GuidancePreset(Choice):
+    """Counterfactual guidance presets: the full method and the paper's ablations."""
+
+    __label__ = "guidance preset"
+    FULL = "full"
+    NO_JERK = "no_jerk"
+    NO_CONFLICT_AWARE = "no_conflict_aware"
+    NO_PROGRESSIVE = "no_progressive"
+    NO_ADAPTIVE = "no_adaptive"
+    MINIMAL = "minimal"
+    NONE = "none"
+
+
+class Sampler(Choice):
+    """The world model's sampler: strided DDIM, or all the DDPM steps."""
+
+    __label__ = "sampler"
+    DDIM = "ddim"
+    DDPM = "ddpm"
+
+
+class PredictionTarget(Choice):
+    """What the denoiser outputs: the clean actions, or the noise."""
+
+    __label__ = "prediction"
+    X0 = "x0"
+    EPSILON = "epsilon"
+
+
+class LaneAnchors(Choice):
+    """Where a model window's lanes are centred: on the ego, or on every window agent."""
+
+    __label__ = "lane_anchors"
+    EGO = "ego"
+    AGENTS = "agents"
+
+
+def choice_field(choices: type[Choice], default: Choice | str | None) -> Any:
+    """A dataclass field whose value is one of ``choices`` (or None when the default is)."""
+    value = default.value if isinstance(default, Choice) else default
+    return dataclasses.field(default=value, metadata={"choices": choices})
+
+
+def check_choices(obj: Any) -> None:
+    """Store every choice field of dataclass ``obj`` as its plain string (frozen or not).
+
+    Raises:
+        ValueError: a value that is not one of its field's choices (None passes where the
+            field's default is None).
+    """
+    for f in dataclasses.fields(obj):
+        choices = f.metadata.get("choices")
+        value = getattr(obj, f.name)
+        if choices is None or (value is None and f.default is None):
+            continue
+        object.__setattr__(obj, f.name, choices.parse(value, f.name))
 
 
 def from_mapping(cls: type[T], values: Mapping, what: str) -> T:
@@ -19,3 +166,96 @@ def from_mapping(cls: type[T], values: Mapping, what: str) -> T:
     if unknown:
         raise ValueError(f"unknown {what} keys {unknown}; valid keys: {sorted(names)}")
     return cls(**values)
+
+
+def defaults(cls: type) -> dict[str, Any]:
+    """``{field: default}`` of a dataclass whose fields all have plain defaults."""
+    return {f.name: f.default for f in dataclasses.fields(cls)}
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """Each field's text from the ``Attributes:`` section of ``cls``'s docstring.
+
+    An entry is ``name: text`` (or ``a, b, c: text`` for several fields), continued on more
+    deeply indented lines; the text is joined into one line.
+    """
+    doc = inspect.getdoc(cls) or ""
+    lines = doc.split("\n")
+    try:
+        start = next(i for i, line in enumerate(lines) if line.strip() == "Attributes:")
+    except StopIteration:
+        return {}
+    out: dict[str, str] = {}
+    names: list[str] = []
+    indent = None
+    for line in lines[start + 1 :]:
+        if not line.strip():
+            continue
+        depth = len(line) - len(line.lstrip())
+        indent = depth if indent is None else indent
+        if depth < indent:
+            break
+        entry = re.match(r"([\w, ]+):\s*(.*)", line.strip()) if depth == indent else None
+        if entry:
+            names = [n.strip() for n in entry.group(1).split(",")]
+            for name in names:
+                out[name] = entry.group(2)
+        else:
+            for name in names:
+                out[name] += " " + line.strip()
+    return out
+
+
+def _flag_type(hint: Any) -> Any:
+    """The argparse type of a field's type hint (``int | None`` -> ``int``)."""
+    args = [a for a in typing.get_args(hint) if a is not type(None)]
+    return args[0] if len(args) == 1 and type(None) in typing.get_args(hint) else hint
+
+
+def add_arguments(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+    cls: type,
+    aliases: Mapping[str, Sequence[str]] | None = None,
+    switches: Mapping[str, Sequence[tuple[str, Any, str]]] | None = None,
+) -> None:
+    """One flag per field of dataclass ``cls``: ``--field-name`` (``--x/--no-x`` for bools),
+    typed by the field's annotation, choices from its :class:`Choice`, help from
+    :func:`field_docs`. Every flag defaults to "not given"; :func:`parsed_fields` collects
+    the given ones.
+
+    Args:
+        aliases: extra spellings of a field's flag (``{"num_samples": ["--samples"]}``).
+        switches: extra flags that set a field to a constant (``{"strict_gates":
+            [("--paper-gates", False, "the paper's selection")]}``).
+    """
+    aliases, switches = aliases or {}, switches or {}
+    hints = typing.get_type_hints(cls)
+    docs = field_docs(cls)
+    for f in dataclasses.fields(cls):
+        kind = _flag_type(hints[f.name])
+        flags = [f"--{f.name.replace('_', '-')}", *aliases.get(f.name, ())]
+        default = "" if f.default is None else f" (default {f.default})"  # None: doc says
+        help_text = f"{docs.get(f.name, f.name)}{default}".replace("%", "%%")
+        kwargs: dict[str, Any] = {"dest": f.name, "default": argparse.SUPPRESS, "help": help_text}
+        if kind is bool:
+            parser.add_argument(*flags, action=argparse.BooleanOptionalAction, **kwargs)
+        else:
+            choices = f.metadata.get("choices")
+            meta = f.name.upper() if choices is None else None
+            parser.add_argument(
+                *flags,
+                type=str if choices else kind,
+                choices=choices.values() if choices else None,
+                metavar=meta,
+                **kwargs,
+            )
+        for flag, value, text in switches.get(f.name, ()):
+            parser.add_argument(
+                flag, dest=f.name, action="store_const", const=value, help=text,
+                default=argparse.SUPPRESS,
+            )  # fmt: skip
+
+
+def parsed_fields(args: argparse.Namespace, cls: type) -> dict[str, Any]:
+    """The fields of ``cls`` that were given on the command line (:func:`add_arguments`)."""
+    return {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if hasattr(args, f.name)}

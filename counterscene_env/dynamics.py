@@ -6,8 +6,8 @@ world model ``yaw`` is the direction of motion (the course), not the body headin
 moves along its course, and highway-env's bicycle model slips up to ~0.25 rad between the two in
 turns, which a heading-driven unicycle cannot follow (see :func:`course_angles`).
 
-Bounds (DESIGN 3.3): acceleration in [-10, 8] m/s^2, and
-``|yaw_rate| <= max(0.1, min(g |v|, a_lat / max(|v|, 0.1)))`` with DESIGN's ``g = 0.5`` rad/m and
+Bounds (docs/design.md, "Action space and unicycle dynamics"): acceleration in [-10, 8] m/s^2, and
+``|yaw_rate| <= max(0.1, min(g |v|, a_lat / max(|v|, 0.1)))`` with the reference ``g = 0.5`` rad/m and
 ``a_lat = 2 pi`` m/s^2 as defaults: a stopped car cannot spin, a fast one cannot turn sharply.
 Both constants are arguments because recorded traffic can exceed them (highway-env's roundabout
 traffic corners at more than 2 pi m/s^2 in a quarter of its steps). Speed never goes below 0.
@@ -27,6 +27,8 @@ from __future__ import annotations
 import math
 
 import torch
+
+from counterscene_env.geometry import wrap_angle
 
 ACC_MIN = -10.0  # m/s^2
 ACC_MAX = 8.0  # m/s^2
@@ -128,8 +130,3 @@ def course_angles(
     )
     course = torch.where(moving, course, headings[..., 1:])
     return torch.cat([headings[..., :1], course], dim=-1)
-
-
-def wrap_angle(angle: torch.Tensor) -> torch.Tensor:
-    """Angle [rad] wrapped to [-pi, pi)."""
-    return torch.remainder(angle + math.pi, 2 * math.pi) - math.pi

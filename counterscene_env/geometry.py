@@ -2,9 +2,10 @@
 
 This module's one job is the vectorised geometry the metrics and the simulator share: corners,
 overlap (separating axis theorem), drivable-area membership, box distance and constant-velocity
-time to collision. It is a lower layer: plain numpy and shapely, no scene types.
+time to collision, plus angle wrapping and frame transforms. It is a lower layer: plain numpy
+and shapely, no scene types.
 
-Conventions (DESIGN 3.1): SI units, world frame, yaw in rad from +x counter-clockwise, a box is
+Conventions (docs/design.md, "Ego-centred frame"): SI units, world frame, yaw in rad from +x counter-clockwise, a box is
 its centre ``[2] m``, yaw ``[] rad`` and extents ``(length, width) [2] m`` with the length along
 the heading.
 
@@ -215,6 +216,29 @@ def overlaps_over_time(
     ok = _present(positions, yaws, extents[:, None], valid)
     centers_t = positions.transpose(1, 0, 2)  # [T, N, 2]
     return _pair_overlap_batched(centers_t, yaws.T, extents, ok.T)
+
+
+# ---------------------------------------------------------------------- angles and frames
+def wrap_angle(angle):
+    """Angle [rad] wrapped to [-pi, pi); a float, a numpy array or a torch tensor."""
+    return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+def to_frame(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """World points ``[..., 2]`` m -> the frame ``origin`` ``[3]`` (x m, y m, yaw rad): the
+    origin at (0, 0), its heading along +x."""
+    c, s = np.cos(origin[2]), np.sin(origin[2])
+    rot = np.array([[c, -s], [s, c]])  # columns: the frame's x and y axes in world coordinates
+    return (points - origin[:2]) @ rot
+
+
+def from_frame(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Points ``[..., 2]`` m in the frame ``origin`` ``[3]`` (x m, y m, yaw rad) -> world:
+    rotate by the origin's yaw, translate by its position (yaws: ``wrap_angle(yaw +
+    origin[2])``)."""
+    c, s = np.cos(origin[2]), np.sin(origin[2])
+    x, y = points[..., 0], points[..., 1]
+    return np.stack([c * x - s * y + origin[0], s * x + c * y + origin[1]], -1)
 
 
 # ---------------------------------------------------------------------- area

@@ -2,7 +2,8 @@
 
 This module's one job is to score a simulated :class:`~counterscene_env.scene.Scene` (against
 its factual log where needed), per scene and per horizon second, and to average those scores
-over scenes the way the paper's tables do (appendix "Metric Definitions", DESIGN 3.6).
+over scenes the way the paper's tables do (appendix "Metric Definitions";
+docs/design.md, "Metric definitions").
 
 What is scored: the rollout, steps ``current_index + 1 ..`` of the scene (the history is shared
 with the log). Horizon ``h`` s means the first ``round(h / dt)`` rollout steps; steps a scene does
@@ -13,7 +14,8 @@ Conventions: rates are fractions in [0, 1] (per-scene flags are 0.0/1.0); a valu
 to average is NaN, never 0; ``min_ttc`` is ``inf`` when no conflict is projected. Results are
 plain Python floats, so ``json.dumps`` writes them (as ``NaN``/``Infinity`` where they are).
 
-Where we depart from the paper (DESIGN 3.6 / 6):
+Where we depart from the paper (docs/design.md, "Metric definitions" and
+"Where we depart from the paper and its public code"):
 
 - HBR uses the *signed* longitudinal acceleration. The paper's ``||a|| cos(world yaw)`` is kept
   as :func:`hbr_paper` for comparison only.

@@ -1,12 +1,12 @@
 """Stress runs: an ego planner against world-model traffic with a guided adversary, scored
 as the paper's tables (``counterscene stress``).
 
-Episode i of a run uses the i-th scene of its source (generated scenarios: the i-th safe
-seed from ``seed``, as ``counterscene generate`` picks them; ``scenarionet:DIR``: the i-th
-``.pkl`` file of DIR, sorted; a dataset directory: its i-th scene; sources are cycled when
-there are more episodes than scenes) and seed ``seed + i`` for its sampling noise. So every row of a comparison (guidance presets, selectors) sees
-the same scenes and the same noise, and an episode's result does not depend on the batch it
-ran in.
+Episode i of a run uses the i-th scene of its source (``scene.sources.scenes_for``: generated
+scenarios, the i-th safe seed from ``seed``, as ``counterscene generate`` picks them;
+``scenarionet:DIR``, the i-th ``.pkl`` file of DIR, sorted; a dataset directory, its i-th
+scene; sources are cycled when there are more episodes than scenes) and seed ``seed + i`` for
+its sampling noise. So every row of a comparison (guidance presets, selectors) sees the same
+scenes and the same noise, and an episode's result does not depend on the batch it ran in.
 
 The summary (:func:`summarize`) is the paper's table row: ADE, FDE, ORR, HBR, CR for the
 horizon groups 1-4 s, 5-7 s, 8-10 s and per second (CR at second h counts episodes with an ego
@@ -21,20 +21,21 @@ import json
 import math
 import os
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from counterscene_env import metrics
+from counterscene_env.config import Scenario
 from counterscene_env.planners import Planner, make_planner
 from counterscene_env.scene.core import Scene
+from counterscene_env.scene.sources import check_spec, scenes_for
 from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.world_model.model import WorldModel
 
-GENERATED = ("highway", "merge", "intersection", "roundabout")
-SCENARIONET_PREFIX = "scenarionet:"
+#: Prefix of a Stable-Baselines3 policy in ``--planner`` (``sb3:PATH.zip``).
 SB3_PREFIX = "sb3:"
 
 
@@ -66,12 +67,7 @@ class StressConfig:
             raise ValueError(f"episodes must be >= 1, got {self.episodes}")
         if self.batch < 1:
             raise ValueError(f"batch must be >= 1, got {self.batch}")
-        path = self.scenario.removeprefix(SCENARIONET_PREFIX)
-        if self.scenario not in GENERATED and not Path(path).exists():
-            raise ValueError(
-                f"unknown scenario {self.scenario!r}: not one of {list(GENERATED)}, and no "
-                f"such path (use '{SCENARIONET_PREFIX}DIR' or a dataset directory)"
-            )
+        check_spec(self.scenario)
         if self.planner.startswith(SB3_PREFIX):
             path = Path(self.planner.removeprefix(SB3_PREFIX))
             if not path.is_file():
@@ -83,38 +79,6 @@ class StressConfig:
         out = dataclasses.asdict(self)
         out["sim"] = dataclasses.asdict(self.sim)
         return out
-
-
-def scenes_for(scenario: str, episodes: int, seed: int) -> Iterator[Scene]:
-    """The scene of each episode (module docstring).
-
-    ``scenario`` is a generated road (the first ``episodes`` safe seeds from ``seed``, exactly
-    the scenes ``counterscene generate --scenario S --scenes N --seed S0`` writes),
-    ``scenarionet:DIR``, or a dataset directory or shard file (its scenes in order). Sources
-    with fewer scenes than episodes are cycled.
-    """
-    if scenario in GENERATED:
-        from counterscene_env.scene.highway import generate
-
-        next_seed = seed
-        for _ in range(episodes):
-            scene = generate(scenario, next_seed)
-            next_seed = scene.metadata["seed"] + 1
-            yield scene
-        return
-    from counterscene_env.scene.datagen import iter_scenes
-
-    path = scenario.removeprefix(SCENARIONET_PREFIX)
-    cache: list[Scene] = []
-    for scene, _ in iter_scenes(path):
-        if len(cache) == episodes:
-            return
-        cache.append(scene)
-        yield scene
-    if not cache:
-        raise FileNotFoundError(f"{path}: no scenes")
-    for i in range(len(cache), episodes):
-        yield cache[i % len(cache)]
 
 
 def run_episodes(
@@ -213,7 +177,7 @@ def run_policy_episodes(
     """
     from tqdm.auto import tqdm
 
-    from counterscene_env.envs.single_agent import SIM_KEYS, CounterSceneEnv
+    from counterscene_env.envs.single_agent import CounterSceneEnv
     from counterscene_env.planners import SB3Policy
 
     policy = SB3Policy(config.planner.removeprefix(SB3_PREFIX))
@@ -221,9 +185,9 @@ def run_policy_episodes(
     settings = {
         **policy.env_config,
         **(env_config or {}),
-        "scenario": config.scenario if config.scenario in GENERATED else "merge",
+        "scenario": config.scenario if config.scenario in Scenario.values() else "merge",
         "model": model,
-        **{key: getattr(sim, key) for key in SIM_KEYS},
+        **dataclasses.asdict(sim),  # every closed-loop setting
         "terminate_on_collision": False,
         "terminate_on_off_road": False,
     }

@@ -10,7 +10,7 @@ import tempfile
 from torch.utils.data import DataLoader
 
 from counterscene_env.scene.datagen import generate_dataset
-from counterscene_env.scene.dataset import SceneWindowDataset
+from counterscene_env.world_model.dataset import SceneWindowDataset
 
 with tempfile.TemporaryDirectory() as out:
     generate_dataset(out, "merge", scenes=4, seed=0, progress=False)

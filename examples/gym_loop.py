@@ -16,7 +16,7 @@ import gymnasium as gym
 import numpy as np
 
 import counterscene_env  # noqa: F401  (registers CounterScene-v0)
-from counterscene_env.render import save_video
+from counterscene_env.envs.render import save_video
 
 
 def cautious(obs: np.ndarray) -> np.ndarray:

@@ -17,8 +17,8 @@ import torch
 from torch.utils.data import default_collate
 
 from counterscene_env.scene import SCENARIOS, generate
-from counterscene_env.scene.dataset import SceneWindowDataset
 from counterscene_env.world_model import load_model
+from counterscene_env.world_model.dataset import SceneWindowDataset
 
 
 def main() -> None:

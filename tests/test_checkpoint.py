@@ -13,7 +13,6 @@ from conftest import make_scene
 from safetensors.torch import load_file, save_file
 from torch.utils.data import default_collate
 
-from counterscene_env.scene.dataset import SceneWindowDataset
 from counterscene_env.world_model.checkpoint import (
     CONFIG,
     DEFAULT_MODEL_DIR,
@@ -26,6 +25,7 @@ from counterscene_env.world_model.checkpoint import (
     save_model,
 )
 from counterscene_env.world_model.config import preset
+from counterscene_env.world_model.dataset import SceneWindowDataset
 from counterscene_env.world_model.model import Normalization, WorldModel
 
 TINY = preset("default").replace(

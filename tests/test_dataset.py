@@ -8,7 +8,8 @@ import torch
 from conftest import make_scene, straight_road
 
 from counterscene_env.scene import save_scenes
-from counterscene_env.scene.dataset import SceneWindowDataset, WindowConfig
+from counterscene_env.world_model.dataset import SceneWindowDataset
+from counterscene_env.world_model.window import WindowConfig
 
 CFG = WindowConfig(
     history_steps=11, future_steps=20, num_agents=4, num_lanes=6, lane_points=5, stride=5

@@ -10,7 +10,7 @@ import pytest
 from conftest import make_scene
 
 import counterscene_env
-from counterscene_env.render import (
+from counterscene_env.envs.render import (
     CONFLICT_COLOR,
     CRASHED_COLOR,
     EGO_COLOR,

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from conftest import make_scene
 
-from counterscene_env import road_keeping
-from counterscene_env.road_keeping import EDGE_MARGIN
+from counterscene_env.sim import road_keeping
+from counterscene_env.sim.road_keeping import EDGE_MARGIN
 
 # One eastbound lane 4 m wide along y = 0, and one westbound along y = 10.
 LINES = np.array(
@@ -50,7 +50,7 @@ def test_a_lane_going_the_agents_way_but_far_away_is_no_correction():
 @pytest.mark.usefixtures("one_torch_thread")
 @pytest.mark.parametrize("keep", [True, False])
 def test_traffic_drifting_off_the_road_is_kept_on_it(keep):
-    from counterscene_env.sim import MOTION_SOURCES, ClosedLoop, SimConfig
+    from counterscene_env.sim import ClosedLoop, MotionSource, SimConfig
     from counterscene_env.world_model.checkpoint import load_model
 
     # Row 1 is 150 m ahead of the ego (beyond the model's view, so it replays its log), and
@@ -73,8 +73,8 @@ def test_traffic_drifting_off_the_road_is_kept_on_it(keep):
         # It drifts as logged while on the road; the step over the edge puts it back inside
         # its lane, and there it stays.
         assert y.max() < 6.0 and y[-1] == pytest.approx(4 + 2 - EDGE_MARGIN)
-        assert (source == MOTION_SOURCES.index("keep")).any()
+        assert (source == MotionSource.KEEP).any()
         # Still moving on at its speed, not stopped at the edge.
         assert sim.positions[1, -1, 0] - sim.positions[1, c, 0] > 40.0
     else:
-        assert y.max() > 6.0 and not (source == MOTION_SOURCES.index("keep")).any()
+        assert y.max() > 6.0 and not (source == MotionSource.KEEP).any()

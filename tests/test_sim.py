@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from conftest import make_scene
 
-from counterscene_env.scene.dataset import make_window
-from counterscene_env.sim import MOTION_SOURCES, ClosedLoop, SimConfig
+from counterscene_env.sim import ClosedLoop, MotionSource, SimConfig
 from counterscene_env.world_model.checkpoint import load_model
+from counterscene_env.world_model.window import make_window
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -240,7 +240,7 @@ def test_traffic_yields_to_the_ego_but_a_guided_adversary_does_not(model, guidan
         assert infos[0]["adversary"] == "a1" and infos[0]["conflict_type"] == "rear_approach"
         while not loop.done.all():
             loop.step(np.zeros((1, 2)))  # the ego keeps its 3 m/s
-        sim, held = loop.scene(0), loop.motion_source(0)[1] == MOTION_SOURCES.index("yield")
+        sim, held = loop.scene(0), loop.motion_source(0)[1] == MotionSource.YIELD
         gap = np.abs(sim.positions[0, 30:, 0] - sim.positions[1, 30:, 0]).min()
         return gap, held.any()
 

@@ -74,3 +74,32 @@ def test_stress_bad_input(args, message, capsys):
     code, _, err = stress(capsys, *args)
     assert code == 1
     assert message in err
+
+
+def test_stress_exposes_every_sim_field_as_a_flag(capsys):
+    import dataclasses
+
+    from counterscene_env.sim import SimConfig
+
+    with pytest.raises(SystemExit):
+        main(["stress", "--help"])
+    text = capsys.readouterr().out
+    for f in dataclasses.fields(SimConfig):
+        assert f"--{f.name.replace('_', '-')}" in text, f.name
+    # The documented short spellings stay.
+    for flag in ("--samples", "--source", "--paper-gates", "--no-yield", "--no-road-keeping"):
+        assert flag in text
+
+
+def test_stress_flags_reach_the_run(shard, capsys):
+    code, out, _ = stress(
+        capsys, "--scenario", shard, "--episodes", "1", "--duration", "0.5", "--json",
+        "--source", "model", "--paper-gates", "--no-yield", "--no-road-keeping",
+        "--sampling-steps", "3", "--eta", "0.5", "--realism-weight", "0", "--max-windows", "2",
+    )  # fmt: skip
+    assert code == 0
+    sim = json.loads(out)["config"]["sim"]
+    assert sim["num_samples"] == 2 and sim["selection_source"] == "model"
+    assert (sim["strict_gates"], sim["traffic_yields"], sim["road_keeping"]) == (False,) * 3
+    assert (sim["sampling_steps"], sim["eta"], sim["realism_weight"]) == (3, 0.5, 0.0)
+    assert sim["max_windows"] == 2 and sim["sampler"] is None  # not given: the default

@@ -9,8 +9,8 @@ from conftest import make_scene
 from torch.utils.data import default_collate
 
 from counterscene_env.dynamics import unicycle_rollout
-from counterscene_env.scene.dataset import SceneWindowDataset
 from counterscene_env.world_model.config import preset
+from counterscene_env.world_model.dataset import SceneWindowDataset
 from counterscene_env.world_model.model import Normalization, WorldModel
 from counterscene_env.world_model.train import action_statistics
 

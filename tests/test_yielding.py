@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from counterscene_env import geometry, yielding
+from counterscene_env import geometry
+from counterscene_env.sim import yielding
 
 
 def straight_path(length: float = 40.0, step: float = 0.5):

@@ -1,7 +1,7 @@
 """Counterfactual guidance: remove the adversary's spatial and temporal safety margins.
 
 Paper: "Counterfactual Guidance" and appendix "Progressive Guidance Configuration"
-(Algorithm 2); DESIGN 3.5. At every denoising step but the last, the posterior mean of the
+(Algorithm 2); docs/design.md, "Counterfactual guidance". At every denoising step but the last, the posterior mean of the
 adversary's action rows takes a step down the gradient of
 
     L = m(p) [lambda_s (||x_e(tau_e^) - c|| + ||x_a(tau_a^) - c||)
@@ -13,14 +13,14 @@ where x are rolled-out positions (the world model's unicycle), c the mined confl
 (tau_e^, tau_a^) the arrival steps after compression, j the third finite difference of the
 positions (jerk, m/s^3) and m(p) the stage multiplier on the progress p.
 
-What the public code gets wrong and we do not (DESIGN 6): the update reaches the adversary
+What the public code gets wrong and we do not (docs/design.md, "Where we depart"): the update reaches the adversary
 only through a *gradient mask* (everyone else's rows are detached before the rollout, and the
 gradient is masked again), never by writing into a slice of a detached copy, which silently
 does nothing. The ego's predicted row is a reference only: its rows are detached too.
 
 The step is sign-like, as one Adam step of learning rate ``step_size`` from a fresh state
 (``lr * g / (|g| + eps)``, in normalised action units), clipped to +-sigma_t so guidance never
-moves a sample further than the noise of that step would (DESIGN 3.5, public code).
+moves a sample further than the noise of that step would (the public code does; docs/design.md).
 
 Shapes: N = scenes x samples, K window agents, Ta action tokens, F future steps.
 """
@@ -40,7 +40,7 @@ from counterscene_env.adversary.selection import (
     REAR_APPROACH,
     Conflict,
 )
-from counterscene_env.config import from_mapping
+from counterscene_env.config import GuidancePreset, from_mapping
 from counterscene_env.world_model.map_guidance import ON_LANE_TOLERANCE, lane_excess
 
 #: Adam's epsilon: the sign-like step is ``lr * g / (|g| + ADAM_EPS)``.
@@ -62,8 +62,8 @@ class GuidanceConfig:
         inner_steps: gradient steps per denoising step (their sum is clipped to +-sigma_t).
         progress: what p measures: ``"rollout"`` (closed-loop step / horizon, the appendix and
             the public code) or ``"denoising"`` (the paper's main text).
-        clip_scale: the step is clipped to +-``clip_scale`` sigma_t (DESIGN: 1).
-        evaluate_on: where the loss gradient is taken: the posterior ``"mean"`` (DESIGN) or
+        clip_scale: the step is clipped to +-``clip_scale`` sigma_t (our reference: 1).
+        evaluate_on: where the loss gradient is taken: the posterior ``"mean"`` (ours) or
             the predicted clean actions ``"x0"``; the step goes to the mean either way.
     """
 
@@ -96,23 +96,24 @@ class GuidanceConfig:
 
 
 #: The paper's ablation rows (Table 4) plus the unguided world model.
+#: Keyed by :class:`~counterscene_env.config.GuidancePreset` (its members are these strings).
 PRESETS: dict[str, GuidanceConfig] = {
-    "full": GuidanceConfig(),
-    "no_jerk": GuidanceConfig(jerk=False),
-    "no_conflict_aware": GuidanceConfig(conflict_aware=False),
-    "no_progressive": GuidanceConfig(progressive=False),
-    "no_adaptive": GuidanceConfig(adaptive=False),
+    GuidancePreset.FULL: GuidanceConfig(),
+    GuidancePreset.NO_JERK: GuidanceConfig(jerk=False),
+    GuidancePreset.NO_CONFLICT_AWARE: GuidanceConfig(conflict_aware=False),
+    GuidancePreset.NO_PROGRESSIVE: GuidanceConfig(progressive=False),
+    GuidancePreset.NO_ADAPTIVE: GuidanceConfig(adaptive=False),
     # "retains only the basic spatial and temporal guidance objectives"
-    "minimal": GuidanceConfig(progressive=False, conflict_aware=False, adaptive=False, jerk=False),
-    "none": GuidanceConfig(enabled=False),
+    GuidancePreset.MINIMAL: GuidanceConfig(
+        progressive=False, conflict_aware=False, adaptive=False, jerk=False
+    ),
+    GuidancePreset.NONE: GuidanceConfig(enabled=False),
 }
 
 
 def guidance_preset(name: str) -> GuidanceConfig:
     """The named preset (:data:`PRESETS`); an unknown name raises and lists the valid ones."""
-    if name not in PRESETS:
-        raise ValueError(f"unknown guidance preset {name!r}; valid: {sorted(PRESETS)}")
-    return PRESETS[name]
+    return PRESETS[GuidancePreset.parse(name, "guidance")]
 
 
 # ---------------------------------------------------------------------- schedules

@@ -2,7 +2,7 @@
 
 This module's one job is to choose which agent the counterfactual guidance should push into
 the ego, and where and when (paper appendix "Conflict Detection and Scoring", Algorithm 1
-"Offline Causal Conflict Mining and Target Identification"; DESIGN 3.4). It reads only future
+"Offline Causal Conflict Mining and Target Identification"; docs/design.md, "Causal adversary selection"). It reads only future
 tracks, so it works the same on the factual log (the paper's offline mining) and on the world
 model's own unguided prediction (re-mined at every replan). Plain numpy.
 
@@ -34,7 +34,7 @@ Causal mining (``method="causal"``), faithful to the paper:
    (intersection) or ``-60 - 30 min(s, 1)`` (following); ``FALLBACK_WEIGHT`` (-50) for callers
    with no conflict.
 
-What the paper lacks and we add (DESIGN 3.4): optional *strict* gates (on by default in
+What the paper lacks and we add (docs/design.md, "Strict selection gates"): optional *strict* gates (on by default in
 :func:`select_adversary`, off in the paper preset) that withdraw the tier of a conflict that the
 guidance cannot realistically turn into a near miss: ``d_min >= 15 m``, arrival gap >= 1.5 s, an
 encounter on the last jointly valid step (truncated by the horizon, so not a real closest
@@ -50,7 +50,7 @@ agent's :class:`Conflict` is still mined as above, so the guidance gets a target
 
 No adversary is a normal outcome: :func:`select_adversary` then returns a :class:`Selection`
 with ``conflict=None`` and a human-readable ``fallback`` reason, and the caller runs the
-unguided world model (DESIGN 3.7).
+unguided world model (docs/design.md, "Environment semantics").
 """
 
 from __future__ import annotations
@@ -60,6 +60,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from counterscene_env.config import Selector
 from counterscene_env.geometry import box_time_to_collision
 
 __all__ = [
@@ -78,7 +79,8 @@ __all__ = [
 
 INTERSECTION, FOLLOWING = "intersection", "following"
 REAR_APPROACH, LEAD_BRAKING = "rear_approach", "lead_braking"
-METHODS = ("causal", "random", "distance", "ttc")
+#: The selection methods (:class:`~counterscene_env.config.Selector`).
+METHODS = Selector.values()
 
 # ---------------------------------------------------------------- paper constants (appendix)
 #: A candidate needs this many steps at which it and the ego are both valid (Algorithm 1, l. 5).
@@ -604,10 +606,7 @@ def select_adversary(
         ValueError: unknown method, ``random`` without ``rng``, inconsistent shapes, ``ego`` out
             of range, a non-finite value at a valid step.
     """
-    if method not in METHODS:
-        raise ValueError(
-            f"unknown adversary selection method {method!r}; expected one of {METHODS}"
-        )
+    method = Selector.parse(method, "method")
     if method == "random" and rng is None:
         raise ValueError("method 'random' needs rng (a numpy.random.Generator)")
     if rng is not None and not isinstance(rng, np.random.Generator):

@@ -22,7 +22,7 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from counterscene_env.envs.single_agent import CounterSceneEnv, _as_action, check_action
+from counterscene_env.envs.single_agent import CounterSceneEnv, check_action
 
 
 class CounterSceneParallelEnv(ParallelEnv):
@@ -133,14 +133,9 @@ class CounterSceneParallelEnv(ParallelEnv):
                 f"unexpected {extra}"
             )
         core = self.core
-        types = core.action_type.agents_action_types
         for a in self.agents:  # every action is checked before any is applied
             check_action(self.action_spaces[a], actions[a], f"{a}'s action")
-        for a in self.agents:
-            types[self.possible_agents.index(a)].act(_as_action(actions[a]))
-        core.time += 1 / core.config["policy_frequency"]
-        core._simulate(None)
-        obs = core.observation_type.observe()
+        obs = core.step_egos({self.possible_agents.index(a): actions[a] for a in self.agents})
         observations, rewards, terminations, truncations, infos = {}, {}, {}, {}, {}
         for a in self.agents:
             k = self.possible_agents.index(a)

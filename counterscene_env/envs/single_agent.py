@@ -26,24 +26,17 @@ from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from counterscene_env import metrics
+from counterscene_env.config import defaults
+from counterscene_env.envs.render import CounterSceneViewer, EpisodeView
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import SceneSource
 from counterscene_env.sim import ClosedLoop, SimConfig
 
 #: Keys of highway-env's base config that mean nothing here (the traffic is the world model).
 _UNUSED_BASE_KEYS = ("other_vehicles_type",)
-#: Config keys that are closed-loop settings (``SimConfig`` fields of the same name).
-SIM_KEYS = (
-    "duration",
-    "replan_every",
-    "num_samples",
-    "selector",
-    "selection_source",
-    "strict_gates",
-    "guidance",
-    "traffic_yields",
-    "road_keeping",
-)
+#: Config keys that are closed-loop settings: every ``SimConfig`` field, by the same name
+#: and with the same default (one source: add a field there and it is a key here).
+SIM_KEYS = tuple(defaults(SimConfig))
 
 _MODELS: dict[str, Any] = {}
 
@@ -153,18 +146,10 @@ class CounterSceneEnv(AbstractEnv):
             config.pop(key)
         config.update(
             {
-                # Scenes and traffic
+                # Scenes and traffic; then every closed-loop setting (SimConfig's fields)
                 "scenario": "intersection",
                 "model": "default",
-                "selector": "causal",
-                "guidance": "full",
-                "selection_source": "log",
-                "strict_gates": True,
-                "traffic_yields": True,
-                "road_keeping": True,
-                "num_samples": 4,
-                "replan_every": 5,  # [steps of 0.1 s]
-                "duration": 10.0,  # [s]
+                **defaults(SimConfig),
                 # The ego: highway-env observation and action types
                 "observation": {
                     "type": "Kinematics",
@@ -287,13 +272,13 @@ class CounterSceneEnv(AbstractEnv):
 
     # ------------------------------------------------------------------ episode
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict]:
-        """Start an episode.
+        """Start an episode (highway-env's ``reset``: its ``_reset`` builds the episode).
 
         ``options`` (all optional): ``"config"``: config updates, as highway-env;
         ``"scene"``: a :class:`Scene` to run instead of drawing one; ``"episode_seed"``: the
         closed loop's seed (world-model noise, adversary tie-breaks) instead of one drawn from
         the env's generator; ``counterscene stress`` passes its episode seeds so every planner
-        meets the same traffic randomness.
+        meets the same traffic randomness. A refused reset leaves the config as it was.
         """
         options = dict(options or {})  # other keys are ignored (PettingZoo's API test sends some)
         scene = options.get("scene")
@@ -302,28 +287,17 @@ class CounterSceneEnv(AbstractEnv):
         saved = dict(self.config), self._source
         try:
             if "config" in options:
-                self.configure(options["config"])
+                self.configure(options.pop("config"))
             if scene is not None:
                 pick_egos(scene, self.config["controlled_vehicles"])  # raises before any change
-            gym.Env.reset(self, seed=seed)
             self._reset_options = options
-            self.update_metadata()
-            self.define_spaces()  # first: the ego's vehicle class depends on the action type
-            self.time = self.steps = 0
-            self.done = False
-            self._reset()
-            self.define_spaces()  # again: observation and action types bound to the new egos
+            return super().reset(seed=seed, options=options)
         except Exception:
             # A refused reset leaves the config as it was; the old episode cannot go on.
             self.config, self._source = saved
             self.define_spaces()
             self.loop = None
             raise
-        obs = self.observation_type.observe()
-        info = self._info(obs, None)
-        if self.render_mode == "human":
-            self.render()
-        return obs, info
 
     def _reset(self) -> None:
         config = self.config
@@ -386,6 +360,17 @@ class CounterSceneEnv(AbstractEnv):
             action = tuple(action)  # one action per ego, as highway-env's MultiAgentAction
         check_action(self.action_space, action)
         return super().step(action)
+
+    def step_egos(self, actions: Mapping[int, Any]) -> Any:
+        """One policy step with an action per ego (ego index -> action, already checked);
+        egos without one (those done) keep their last controls. Returns every ego's
+        observation. The PettingZoo env steps through this."""
+        types = self.action_type.agents_action_types
+        for k, action in actions.items():
+            types[k].act(_as_action(action))
+        self.time += 1 / self.config["policy_frequency"]
+        self._simulate(None)
+        return self.observation_type.observe()
 
     def _simulate(self, action: Any = None) -> None:
         """``simulation_frequency / policy_frequency`` closed-loop steps with one action."""
@@ -515,6 +500,20 @@ class CounterSceneEnv(AbstractEnv):
             info["metrics"] = self.episode_metrics(0)
         return info
 
+    def episode_view(self) -> EpisodeView:
+        """What the viewer draws on top of highway-env's frame (``envs/render.py``)."""
+        ep = self.loop.episodes[0]
+        targets = []
+        for selection in ep.selections:
+            conflict = selection.conflict
+            if conflict is not None:
+                targets.append((ep.remaining_plan(conflict.agent), conflict.conflict_point))
+        hit = [
+            v.crashed or self.ego_info(k)["collision"]
+            for k, v in enumerate(self.controlled_vehicles)
+        ]
+        return EpisodeView(tuple(hit), frozenset(ep.adversaries), tuple(targets))
+
     # ------------------------------------------------------------------ rendering
     def render(self) -> np.ndarray | None:
         if self.render_mode is None:
@@ -523,8 +522,6 @@ class CounterSceneEnv(AbstractEnv):
                 'render_mode="rgb_array")'
             )
             return None
-        from counterscene_env.render import CounterSceneViewer
-
         if self.viewer is None:
             self.viewer = CounterSceneViewer(self)
         self.enable_auto_render = True

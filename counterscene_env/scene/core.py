@@ -5,7 +5,7 @@ plus the :class:`~counterscene_env.scene.road.RoadMap` they drive on. Every scen
 (the highway-env generator, the ScenarioNet importer, the closed-loop simulator) produces one,
 and everything downstream (selection, the world model, metrics) reads only this.
 
-Conventions (DESIGN 3.1): SI units, world frame, ``yaw`` measured from +x counter-clockwise,
+Conventions (docs/design.md, "Ego-centred frame"): SI units, world frame, ``yaw`` measured from +x counter-clockwise,
 ``speed`` the signed speed along the heading. Where ``valid[i, t]`` is False the state entries
 of agent i at step t carry no meaning (they are zero after construction) and every consumer
 must mask them.
@@ -89,6 +89,13 @@ class Scene:
 
     # ------------------------------------------------------------------ validation
     def _validate(self) -> None:
+        """Raise :class:`SceneError` on the first broken field (shapes, indices, then values)."""
+        n, t = self._validate_shapes()
+        self._validate_indices(n, t)
+        self._validate_values(n)
+
+    def _validate_shapes(self) -> tuple[int, int]:
+        """Check every array's shape against ``positions [N, T, 2]``; return ``(N, T)``."""
         if self.positions.ndim != 3 or self.positions.shape[2] != 2:
             raise SceneError(f"positions must be [N, T, 2], got {self.positions.shape}")
         n, t, _ = self.positions.shape
@@ -107,6 +114,10 @@ class Scene:
                 )
         if n == 0 or t == 0:
             raise SceneError(f"a scene needs at least one agent and one step, got N={n}, T={t}")
+        return n, t
+
+    def _validate_indices(self, n: int, t: int) -> None:
+        """Check ``ego_index`` (a vehicle row of N), ``dt > 0`` s and ``current_index`` (of T)."""
         if not 0 <= self.ego_index < n:
             raise SceneError(f"ego_index {self.ego_index} out of range for {n} agents")
         if self.agent_types[self.ego_index] != "vehicle":
@@ -115,6 +126,9 @@ class Scene:
             raise SceneError(f"dt must be positive, got {self.dt}")
         if not 0 <= self.current_index < t:
             raise SceneError(f"current_index {self.current_index} out of range for T={t}")
+
+    def _validate_values(self, n: int) -> None:
+        """Check agent types and ids, finite states at valid steps, extents (m) and the road."""
         unknown = set(self.agent_types.tolist()) - set(AGENT_TYPES)
         if unknown:
             raise SceneError(f"unknown agent types {sorted(unknown)}; valid: {AGENT_TYPES}")

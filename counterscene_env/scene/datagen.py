@@ -17,6 +17,7 @@ skips the shards it lists, so an interrupted run loses at most the shards in fli
 from __future__ import annotations
 
 import hashlib
+import importlib.metadata
 import json
 import math
 import os
@@ -138,6 +139,29 @@ def _build(
 
     out.mkdir(parents=True, exist_ok=True)
     manifest = _open_manifest(out, params)
+    _refuse_shrinking(out, manifest, target)
+    done = _reusable_blocks(out, manifest, target)
+    bar = tqdm(
+        total=target, disable=not progress, unit="scene", desc=params.get("scenario", "convert")
+    )
+    bar.update(sum(s["scenes"] for s in done.values()))
+    pool = ProcessPoolExecutor(max_workers=workers) if workers > 1 else None
+    loop = _BlockLoop(out, manifest, params, done, target, num_blocks, block_args, workers, pool)
+    try:
+        loop.run(bar)
+    finally:
+        for fut in loop.pending:
+            fut.cancel()
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+        bar.close()
+    if target is not None:
+        _truncate(out, manifest, done, target)
+    return _write_manifest(out, manifest, done, target)
+
+
+def _refuse_shrinking(out: Path, manifest: dict, target: int | None) -> None:
+    """Raise ValueError if ``out`` already holds more scenes than the ``target`` asked for."""
     held = manifest.get("scenes_requested")
     if target is not None and held is not None and held > target:
         # Shrinking would delete scenes someone generated; never do that silently.
@@ -145,6 +169,10 @@ def _build(
             f"{out} already holds a dataset of {held} scenes; asked for {target}. "
             "Use another --out, or ask for at least as many scenes."
         )
+
+
+def _reusable_blocks(out: Path, manifest: dict, target: int | None) -> dict[int, dict]:
+    """The manifest's block entries a rerun keeps (shard on disk, complete enough), by block."""
     done: dict[int, dict] = {}
     for entry in sorted(manifest["shards"], key=lambda e: e["block"]):
         if entry["scenes"] and not (out / entry["file"]).is_file():
@@ -154,77 +182,113 @@ def _build(
         if entry.get("truncated") and (target is None or covered < target):
             continue
         done[entry["block"]] = entry
+    return done
 
-    def contiguous_total() -> tuple[int, int]:
+
+class _BlockLoop:
+    """The scheduling state of :func:`_build`: blocks done, futures in flight, the next block."""
+
+    def __init__(
+        self,
+        out: Path,
+        manifest: dict,
+        params: dict,
+        done: dict[int, dict],
+        target: int | None,
+        num_blocks: int | None,
+        block_args: Callable[[int, int], tuple],
+        workers: int,
+        pool: ProcessPoolExecutor | None,
+    ) -> None:
+        self.out = out
+        self.manifest = manifest
+        self.params = params
+        self.done = done  # shared with the caller: block -> manifest entry
+        self.target = target
+        self.num_blocks = num_blocks
+        self.block_args = block_args
+        self.workers = workers
+        self.pool = pool
+        self.pending: dict[Future, int] = {}
+        self.next_block = 0
+        self.empty_streak = 0
+
+    def run(self, bar) -> None:
+        """Schedule and collect blocks until :meth:`finished` or nothing is left to schedule."""
+        while not self.finished():
+            self.schedule()
+            if not self.pending:
+                break
+            self.collect(bar)
+
+    def contiguous_total(self) -> tuple[int, int]:
+        """Scenes in the done blocks 0, 1, ... without a gap, and the first block missing."""
         total, k = 0, 0
-        while k in done:
-            total += done[k]["scenes"]
+        while k in self.done:
+            total += self.done[k]["scenes"]
             k += 1
         return total, k
 
-    def finished() -> bool:
-        total, k = contiguous_total()
-        return total >= target if target is not None else k >= num_blocks
+    def finished(self) -> bool:
+        """Whether the gapless done blocks hold ``target`` scenes (or are all ``num_blocks``)."""
+        total, k = self.contiguous_total()
+        return total >= self.target if self.target is not None else k >= self.num_blocks
 
-    bar = tqdm(
-        total=target, disable=not progress, unit="scene", desc=params.get("scenario", "convert")
-    )
-    bar.update(sum(s["scenes"] for s in done.values()))
-    pool = ProcessPoolExecutor(max_workers=workers) if workers > 1 else None
-    pending: dict[Future, int] = {}
-    next_block, empty_streak = 0, 0
-    try:
-        while not finished():
-            # Keep workers busy, but never schedule blocks that cannot be needed.
-            while len(pending) < workers:
-                while next_block in done:
-                    next_block += 1
-                if num_blocks is not None and next_block >= num_blocks:
-                    break
-                if target is not None:
-                    hoped = sum(s["scenes"] for s in done.values()) + params["shard_size"] * len(
-                        pending
-                    )
-                    if hoped >= target and pending:
-                        break
-                # A block never needs more scenes than are still missing before it.
-                before = [done[j]["scenes"] for j in range(next_block) if j in done]
-                limit = (
-                    target - sum(before)
-                    if target is not None and len(before) == next_block
-                    else target
-                )
-                fn, *args = block_args(next_block, limit)
-                if pool is None:
-                    fut: Future = Future()
-                    fut.set_result(fn(*args))
-                else:
-                    fut = pool.submit(fn, *args)
-                pending[fut] = next_block
-                next_block += 1
-            if not pending:
+    def schedule(self) -> None:
+        """Keep workers busy, but never schedule blocks that cannot be needed."""
+        while len(self.pending) < self.workers:
+            k = self._next_needed_block()
+            if k is None:
                 break
-            finished_now, _ = wait(pending, return_when=FIRST_COMPLETED)
-            for fut in finished_now:
-                pending.pop(fut)
-                entry = fut.result()
-                done[entry["block"]] = entry
-                empty_streak = empty_streak + 1 if entry["scenes"] == 0 else 0
-                bar.update(entry["scenes"])
-                _write_manifest(out, manifest, done, target)
-            if target is not None and empty_streak >= 3:
-                raise RuntimeError(
-                    f"{out}: three blocks in a row produced no scene; see {MANIFEST}"
-                )
-    finally:
-        for fut in pending:
-            fut.cancel()
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
-        bar.close()
-    if target is not None:
-        _truncate(out, manifest, done, target)
-    return _write_manifest(out, manifest, done, target)
+            self._submit(k, self._limit(k))
+
+    def _next_needed_block(self) -> int | None:
+        """The next block not done yet, or None if none may be scheduled now."""
+        while self.next_block in self.done:
+            self.next_block += 1
+        if self.num_blocks is not None and self.next_block >= self.num_blocks:
+            return None
+        if self.target is not None:
+            in_flight = self.params["shard_size"] * len(self.pending)  # scenes hoped for
+            hoped = sum(s["scenes"] for s in self.done.values()) + in_flight
+            if hoped >= self.target and self.pending:
+                return None
+        return self.next_block
+
+    def _limit(self, k: int) -> int | None:
+        """Scenes block ``k`` may accept: never more than are still missing before it."""
+        before = [self.done[j]["scenes"] for j in range(k) if j in self.done]
+        return (
+            self.target - sum(before)
+            if self.target is not None and len(before) == k
+            else self.target
+        )
+
+    def _submit(self, k: int, limit: int | None) -> None:
+        """Start block ``k`` (run inline without a pool) and track its future."""
+        fn, *args = self.block_args(k, limit)
+        if self.pool is None:
+            fut: Future = Future()
+            fut.set_result(fn(*args))
+        else:
+            fut = self.pool.submit(fn, *args)
+        self.pending[fut] = k
+        self.next_block = k + 1
+
+    def collect(self, bar) -> None:
+        """Wait for a block to finish; record it, advance ``bar`` and rewrite the manifest."""
+        finished_now, _ = wait(self.pending, return_when=FIRST_COMPLETED)
+        for fut in finished_now:
+            self.pending.pop(fut)
+            entry = fut.result()
+            self.done[entry["block"]] = entry
+            self.empty_streak = self.empty_streak + 1 if entry["scenes"] == 0 else 0
+            bar.update(entry["scenes"])
+            _write_manifest(self.out, self.manifest, self.done, self.target)
+        if self.target is not None and self.empty_streak >= 3:
+            raise RuntimeError(
+                f"{self.out}: three blocks in a row produced no scene; see {MANIFEST}"
+            )
 
 
 def _truncate(out: Path, manifest: dict, done: dict[int, dict], target: int) -> None:
@@ -264,8 +328,7 @@ def _truncate(out: Path, manifest: dict, done: dict[int, dict], target: int) -> 
 
 
 def _open_manifest(out: Path, params: dict) -> dict:
-    from counterscene_env import __version__
-
+    """The manifest in ``out`` (checked against ``params``), or a fresh one for a new dataset."""
     if (out / MANIFEST).is_file():
         manifest = read_manifest(out)
         mismatch = {k: (manifest.get(k), v) for k, v in params.items() if manifest.get(k) != v}
@@ -277,7 +340,7 @@ def _open_manifest(out: Path, params: dict) -> dict:
         "format": DATASET_FORMAT,
         "version": DATASET_VERSION,
         **params,
-        "counterscene_version": __version__,
+        "counterscene_version": importlib.metadata.version("counterscene-env"),
         "scenes": 0,
         "shards": [],
     }

@@ -33,6 +33,7 @@ import dataclasses
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import highway_env
 import numpy as np
@@ -44,11 +45,12 @@ from highway_env.envs.roundabout_env import RoundaboutEnv
 from highway_env.road.lane import LineType, StraightLane
 from highway_env.vehicle.behavior import IDMVehicle
 
+from counterscene_env.config import Scenario
 from counterscene_env.geometry import overlaps_over_time
 from counterscene_env.scene.core import DEFAULT_DT, Scene
 from counterscene_env.scene.road import RoadMap
 
-SCENARIOS = ("highway", "merge", "intersection", "roundabout")
+SCENARIOS = Scenario.values()
 
 
 class ForwardIDMVehicle(IDMVehicle):
@@ -150,6 +152,17 @@ def record(scenario: str, seed: int, config: GeneratorConfig | None = None) -> S
         raise ValueError(f"unknown scenario {scenario!r}; choose one of {SCENARIOS}")
     cfg = config or GeneratorConfig()
     start = time.perf_counter()
+    log, ego, network, n_steps = _simulate(scenario, seed, cfg)
+    scene = log.to_scene(ego, network, n_steps, cfg, scenario, seed)
+    if scenario == "highway":
+        scene = scene.replace(ego_index=_platoon_middle(scene))
+    _reject_unsafe(scene, cfg)
+    scene.metadata["generation_time_s"] = time.perf_counter() - start
+    return scene
+
+
+def _simulate(scenario: str, seed: int, cfg: GeneratorConfig) -> tuple[_Recorder, Any, Any, int]:
+    """Warm up and run the env, logging every 10 Hz step: (log, ego vehicle, road network, T)."""
     with _pristine_idm_constants():
         env = _make_env(scenario)
         env.reset(seed=int(seed))
@@ -170,9 +183,11 @@ def record(scenario: str, seed: int, config: GeneratorConfig | None = None) -> S
                     traffic.step(1.0 / cfg.sim_frequency)
         network = env.road.network
         env.close()
-    scene = log.to_scene(ego, network, n_steps, cfg, scenario, seed)
-    if scenario == "highway":
-        scene = scene.replace(ego_index=_platoon_middle(scene))
+    return log, ego, network, n_steps
+
+
+def _reject_unsafe(scene: Scene, cfg: GeneratorConfig) -> None:
+    """Raise :class:`RejectedScene` for a missing ego, overlapping boxes or off-road driving."""
     if not scene.valid[scene.ego_index].all():
         raise RejectedScene("the ego is not present for the whole log")
     overlap = overlaps_over_time(scene.positions, scene.yaws, scene.extents, scene.valid)
@@ -182,8 +197,6 @@ def record(scenario: str, seed: int, config: GeneratorConfig | None = None) -> S
     off = shapely.distance(scene.road.drivable_area, centres).max()
     if off > cfg.max_off_road:
         raise RejectedScene(f"a vehicle drove {off:.1f} m off the road")
-    scene.metadata["generation_time_s"] = time.perf_counter() - start
-    return scene
 
 
 # ---------------------------------------------------------------------- environments

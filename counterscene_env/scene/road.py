@@ -1,6 +1,6 @@
 """The road a scene drives on: a highway-env ``RoadNetwork`` plus what the rest of us need from it.
 
-DESIGN 3.0: roads are highway-env networks (its Straight/Sine/Circular lanes for generated
+Roads are (docs/design.md, "highway-env is the substrate") highway-env networks (its Straight/Sine/Circular lanes for generated
 scenarios, ``PolyLaneFixedWidth`` lanes built from centre lines for imported maps), so that the
 ego can be driven and observed through highway-env. From a network we derive the two views the
 metrics and the world model read: lane centre polylines (``[P, 2]`` m, about 1 m apart) and a

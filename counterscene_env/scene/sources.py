@@ -1,26 +1,50 @@
-"""Where an environment's episodes come from: a scenario spec -> one :class:`Scene` per reset.
+"""Where episodes come from: a scenario spec -> scenes. The one place specs are resolved.
 
 A spec is a generated road (``highway``, ``merge``, ``intersection``, ``roundabout``: a fresh
 highway-env recording per episode), ``scenarionet:DIR`` (real logs converted by ScenarioNet), a
-dataset directory or shard file written by ``counterscene generate``, or a list of any of these
-(each episode picks one uniformly). All draws come from the generator the env passes, so the
-same env seed gives the same scenes.
+dataset directory or shard file written by ``counterscene generate``, or (for an env) a list of
+any of these (each episode picks one uniformly).
+
+- :class:`SceneSource` draws one scene per env reset from the generator the env passes, so the
+  same env seed gives the same scenes.
+- :func:`scenes_for` gives the scene of each episode of a stress run in order.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 
+from counterscene_env.config import SCENARIONET_PREFIX, Scenario
 from counterscene_env.scene.core import Scene
-from counterscene_env.scene.highway import SCENARIOS
 
-#: Prefix of a ScenarioNet directory in a scenario spec.
-SCENARIONET_PREFIX = "scenarionet:"
 #: Generated scenes take their seed from [0, SEED_RANGE).
 SEED_RANGE = 2**31 - 1
+
+
+def check_spec(spec: str) -> str:
+    """``spec`` if it is a generated road or an existing path (after ``scenarionet:``).
+
+    Raises:
+        ValueError: neither (the message lists the roads and the path forms).
+    """
+    if spec not in Scenario.values() and not Path(spec.removeprefix(SCENARIONET_PREFIX)).exists():
+        raise ValueError(
+            f"unknown scenario {spec!r}: not one of {list(Scenario.values())}, and no such "
+            f"path (use '{SCENARIONET_PREFIX}DIR' or a dataset directory)"
+        )
+    return spec
+
+
+def stored_scenes(spec: str) -> Iterator[Scene]:
+    """The scenes of a stored spec (``scenarionet:DIR``, a dataset directory or shard), in
+    order."""
+    from counterscene_env.scene.datagen import iter_scenes
+
+    for scene, _ in iter_scenes(spec.removeprefix(SCENARIONET_PREFIX)):
+        yield scene
 
 
 class SceneSource:
@@ -38,13 +62,7 @@ class SceneSource:
         specs = [spec] if isinstance(spec, str) else list(spec)
         if not specs or not all(isinstance(s, str) for s in specs):
             raise ValueError(f"scenario must be a name, a path or a list of them, got {spec!r}")
-        for s in specs:
-            if s not in SCENARIOS and not Path(s.removeprefix(SCENARIONET_PREFIX)).exists():
-                raise ValueError(
-                    f"unknown scenario {s!r}: not one of {list(SCENARIOS)}, and no such path "
-                    f"(use '{SCENARIONET_PREFIX}DIR' or a dataset directory)"
-                )
-        self.specs = specs
+        self.specs = [check_spec(s) for s in specs]
         self._cache: dict[str, list[Scene]] = {}
 
     def draw(self, rng: np.random.Generator) -> Scene:
@@ -52,7 +70,7 @@ class SceneSource:
         spec = (
             self.specs[int(rng.integers(len(self.specs)))] if len(self.specs) > 1 else self.specs[0]
         )
-        if spec in SCENARIOS:
+        if spec in Scenario.values():
             from counterscene_env.scene.highway import generate
 
             return generate(spec, int(rng.integers(SEED_RANGE)))
@@ -61,10 +79,36 @@ class SceneSource:
 
     def _scenes(self, spec: str) -> list[Scene]:
         if spec not in self._cache:
-            from counterscene_env.scene.datagen import iter_scenes
-
-            scenes = [scene for scene, _ in iter_scenes(spec.removeprefix(SCENARIONET_PREFIX))]
+            scenes = list(stored_scenes(spec))
             if not scenes:
                 raise FileNotFoundError(f"{spec}: no scenes")
             self._cache[spec] = scenes
         return self._cache[spec]
+
+
+def scenes_for(spec: str, episodes: int, seed: int) -> Iterator[Scene]:
+    """The scene of each of ``episodes`` episodes of a stress run.
+
+    A generated road gives the first ``episodes`` safe seeds from ``seed``, exactly the scenes
+    ``counterscene generate --scenario S --scenes N --seed S0`` writes; a stored spec gives its
+    scenes in order. Sources with fewer scenes than episodes are cycled.
+    """
+    if spec in Scenario.values():
+        from counterscene_env.scene.highway import generate
+
+        next_seed = seed
+        for _ in range(episodes):
+            scene = generate(spec, next_seed)
+            next_seed = scene.metadata["seed"] + 1
+            yield scene
+        return
+    cache: list[Scene] = []
+    for scene in stored_scenes(spec):
+        if len(cache) == episodes:
+            return
+        cache.append(scene)
+        yield scene
+    if not cache:
+        raise FileNotFoundError(f"{spec.removeprefix(SCENARIONET_PREFIX)}: no scenes")
+    for i in range(len(cache), episodes):
+        yield cache[i % len(cache)]

@@ -1,4 +1,5 @@
-"""Speed of the world model (``counterscene bench``): the figures behind DESIGN 7's budget.
+"""Speed of the world model (``counterscene bench``): the figures behind the CPU
+budget (docs/design.md, "CPU budget and default preset").
 
 One *sampling call* is :meth:`WorldModel.sample` on one scene with every agent slot filled
 (``num_agents`` agents, ``num_lanes`` lanes), the model's default sampler and steps. FLOPs per

@@ -105,15 +105,29 @@ def load_model(
     foreign or newer format, an unknown architecture key, a file that is not safetensors,
     missing or unexpected tensors, or a shape mismatch.
     """
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
-
     path = DEFAULT_MODEL_DIR if directory in (None, "default") else Path(directory)
     meta = read_config(path)
+    config = _architecture(path, meta)
+    normalization = _normalization(path, meta)
+    tensors = _read_weights(path)
+    model = _build_model(path, config, normalization)
+    _check_tensors(path / WEIGHTS, tensors, model.state_dict())
+    model.load_state_dict(tensors)
+    model.preset = meta.get("preset")
+    model.training_info = meta.get("training", {})
+    return model.to(device).eval()
+
+
+def _architecture(path: Path, meta: dict[str, Any]) -> ModelConfig:
+    """The ``ModelConfig`` of the config's architecture section."""
     try:
-        config = ModelConfig.from_mapping(meta["architecture"])
+        return ModelConfig.from_mapping(meta["architecture"])
     except (TypeError, ValueError) as exc:
         raise CheckpointError(f"{path / CONFIG}: bad architecture: {exc}") from None
+
+
+def _normalization(path: Path, meta: dict[str, Any]) -> Normalization:
+    """The action normalization (2 finite means, 2 finite positive stds) of the config."""
     norm = meta["normalization"]
     try:
         normalization = Normalization(
@@ -129,20 +143,35 @@ def load_model(
         or min(normalization.action_std) <= 0
     ):
         raise CheckpointError(f"{path / CONFIG}: normalization must be 2 means and 2 positive stds")
+    return normalization
+
+
+def _read_weights(path: Path) -> dict[str, torch.Tensor]:
+    """The tensors of ``path/model.safetensors``, loaded on the CPU."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
 
     weights = path / WEIGHTS
     if not weights.is_file():
         raise CheckpointError(f"{str(path)!r} has no {WEIGHTS}")
     try:
-        tensors = load_file(str(weights), device="cpu")
+        return load_file(str(weights), device="cpu")
     except (SafetensorError, OSError, ValueError) as exc:
         raise CheckpointError(f"{weights} is not a readable safetensors file: {exc}") from None
 
+
+def _build_model(path: Path, config: ModelConfig, normalization: Normalization) -> WorldModel:
+    """An untrained ``WorldModel`` of the checkpoint's architecture and normalization."""
     try:
-        model = WorldModel(config, normalization)
+        return WorldModel(config, normalization)
     except (TypeError, ValueError, RuntimeError, ZeroDivisionError) as exc:
         raise CheckpointError(f"{path / CONFIG}: cannot build the architecture: {exc}") from None
-    expected = model.state_dict()
+
+
+def _check_tensors(
+    weights: Path, tensors: Mapping[str, torch.Tensor], expected: Mapping[str, torch.Tensor]
+) -> None:
+    """Check the loaded tensors' names, shapes and finiteness against the model's state dict."""
     missing = sorted(set(expected) - set(tensors))
     unexpected = sorted(set(tensors) - set(expected))
     if missing or unexpected:
@@ -159,7 +188,3 @@ def load_model(
             )
         if not torch.isfinite(tensor).all():
             raise CheckpointError(f"{weights}: tensor {name!r} holds NaN or infinite values")
-    model.load_state_dict(tensors)
-    model.preset = meta.get("preset")
-    model.training_info = meta.get("training", {})
-    return model.to(device).eval()

@@ -1,4 +1,5 @@
-"""Causal Interaction Graph edge features (paper eq. "e_ij", DESIGN 3.3).
+"""Causal Interaction Graph edge features (paper eq. "e_ij"; docs/design.md,
+"Denoiser and Causal Interaction Graph").
 
 For every ordered pair (i, j) of agents, from their current positions and velocities projected
 at constant velocity over the horizon, six scores in [0, 1] (1 = most interaction):

@@ -3,7 +3,7 @@
 ``paper`` holds the reference constants of the CounterScene paper (hyper-parameter table): 31
 history frames, 52 future steps, up to 21 agents within 50 m, width 128, 16 heads, 100 DDPM
 steps. It is sized for a GPU. ``default`` keeps the method and shrinks the constants for a 2-core
-CPU (DESIGN 7): 12 agents, history and future tokens subsampled, width 96, a 10-step strided
+CPU (docs/design.md, "CPU budget"): 12 agents, history and future tokens subsampled, width 96, a 10-step strided
 sampler. Both build the same network class; only the sizes differ.
 """
 
@@ -14,7 +14,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from counterscene_env.scene.dataset import LANE_ANCHORS
+from counterscene_env.config import LaneAnchors, PredictionTarget, Sampler
+from counterscene_env.world_model.window import WindowConfig
 
 
 @dataclass(frozen=True)
@@ -35,7 +36,7 @@ class ModelConfig:
         map_radius: lane segments farther than this from every map anchor are left out [m].
         lane_anchors: ``"ego"``: the window's lanes are those nearest the ego (checkpoints
             without the key); ``"agents"``: those nearest where the window's agents are and
-            where constant velocity would take them (``scene.dataset.WindowConfig``).
+            where constant velocity would take them (``world_model.window.WindowConfig``).
         local_lanes: per agent, this many (at most ``num_lanes``) of the lane segments nearest
             to it, expressed in its own frame (position and course at "now"), form a second,
             agent-centric map that the agent's tokens attend to in every block; 0 disables it
@@ -65,8 +66,9 @@ class ModelConfig:
             every agent that is on a lane now keeps its centre inside a lane strip; 0 disables
             (checkpoints without the key). Measured in docs/world_model.md.
         yaw_gain: low-speed yaw-rate bound of the rollout, |w| <= yaw_gain * v [rad/m].
-        lateral_limit: high-speed yaw-rate bound, |w| <= lateral_limit / v [m/s^2]. DESIGN's
-            values are 0.5 and 2 pi; the defaults are looser because the training traffic
+        lateral_limit: high-speed yaw-rate bound, |w| <= lateral_limit / v [m/s^2]. The
+            reference values are 0.5 and 2 pi (docs/design.md, "Action space and unicycle
+            dynamics"); the defaults are looser because the training traffic
             needs it (highway-env's roundabout corners above 2 pi m/s^2 in ~27 % of its steps,
             and yielding cars at the intersection turn in place faster than 0.5 v).
         dt: step length [s].
@@ -129,8 +131,8 @@ class ModelConfig:
                 "need num_lanes >= 1, lane_points >= 2",
             ),
             (
-                self.lane_anchors in LANE_ANCHORS,
-                f"lane_anchors must be one of {LANE_ANCHORS}, got {self.lane_anchors!r}",
+                self.lane_anchors in LaneAnchors.values(),
+                f"lane_anchors must be one of {LaneAnchors.values()}, got {self.lane_anchors!r}",
             ),
             (
                 self.local_lanes >= 0 and self.local_radius > 0,
@@ -142,8 +144,11 @@ class ModelConfig:
                 "num_heads must divide d_model",
             ),
             (self.num_blocks >= 1, "num_blocks must be >= 1"),
-            (self.prediction in ("x0", "epsilon"), "prediction must be 'x0' or 'epsilon'"),
-            (self.sampler in ("ddim", "ddpm"), "sampler must be 'ddim' or 'ddpm'"),
+            (
+                self.prediction in PredictionTarget.values(),
+                f"prediction must be one of {PredictionTarget.values()}",
+            ),
+            (self.sampler in Sampler.values(), f"sampler must be one of {Sampler.values()}"),
             (
                 1 <= self.sampling_steps <= self.num_train_timesteps,
                 "sampling_steps must be in [1, num_train_timesteps]",
@@ -168,6 +173,12 @@ class ModelConfig:
     def horizon(self) -> float:
         """Prediction horizon [s]."""
         return self.future_steps * self.dt
+
+    def window(self, stride: int = 10) -> WindowConfig:
+        """The :class:`WindowConfig` of the windows this model reads: every window setting is
+        the model's field of the same name (one source), ``stride`` aside (a dataset choice)."""
+        shared = {f.name for f in dataclasses.fields(WindowConfig)} - {"stride"}
+        return WindowConfig(**{name: getattr(self, name) for name in shared}, stride=stride)
 
     def replace(self, **changes: Any) -> ModelConfig:
         return dataclasses.replace(self, **changes)

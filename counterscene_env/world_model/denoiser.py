@@ -1,4 +1,5 @@
-"""The SceneTransformer-style denoiser with the Causal Interaction Graph (DESIGN 3.3).
+"""The SceneTransformer-style denoiser with the Causal Interaction Graph (docs/design.md, "Denoiser and Causal
+Interaction Graph").
 
 Tokens: per agent, ``Hh`` history tokens followed by ``Ta`` noisy future-action tokens, one
 sequence of ``L = Hh + Ta`` tokens of width ``d``. Every token gets its agent's embedding (current
@@ -228,7 +229,7 @@ class Denoiser(nn.Module):
             later[:, :Hh] = False  # history is always visible; only future keys are causal
             temporal = temporal + torch.where(later, NEG, 0.0)
 
-        # CIG gate (DESIGN 3.3): bias = log(max(sigmoid(MLP(phi(e_ij))), 1e-4)), per head.
+        # CIG gate (docs/design.md, "Denoiser and Causal Interaction Graph"): bias = log(max(sigmoid(MLP(phi(e_ij))), 1e-4)), per head.
         gate = torch.sigmoid(self.edge_mlp(edges))  # [B, K, K, heads]
         bias = torch.log(gate.clamp(min=1e-4))
         if graph_dropout > 0:

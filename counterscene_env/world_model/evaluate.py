@@ -27,9 +27,9 @@ import shapely
 import torch
 from torch.utils.data import default_collate
 
-from counterscene_env.geometry import points_in_area
+from counterscene_env.geometry import from_frame, points_in_area
 from counterscene_env.scene.core import Scene
-from counterscene_env.scene.dataset import SceneWindowDataset
+from counterscene_env.world_model.dataset import SceneWindowDataset
 from counterscene_env.world_model.model import WorldModel
 
 
@@ -40,13 +40,6 @@ def horizons(model: WorldModel) -> dict[str, int]:
     out = {k: v for k, v in steps.items() if v <= model.config.future_steps}
     out["full"] = model.config.future_steps
     return out
-
-
-def _to_world(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
-    """Ego-frame points ``[..., 2]`` -> world, for frames ``origin [3]`` (x, y, yaw)."""
-    c, s = np.cos(origin[2]), np.sin(origin[2])
-    rot = np.array([[c, s], [-s, c]])
-    return points @ rot + origin[:2]
 
 
 class _Accumulator:
@@ -91,7 +84,6 @@ def evaluate_model(
     model = model.eval()
     ds = SceneWindowDataset(scenes, model.window_config())
     hz = horizons(model)
-    F = model.config.future_steps
     ours, cv = _Accumulator(hz), _Accumulator(hz)
     g = torch.Generator().manual_seed(seed)
     areas = [s.road.drivable_area for s in scenes]
@@ -109,46 +101,89 @@ def evaluate_model(
         batch = default_collate(
             [{k: torch.from_numpy(np.asarray(v)) for k, v in w.items()} for w in items]
         )
-        with torch.no_grad():
-            prediction = model.sample(batch, num_samples, g)
-            pred = prediction.trajectory.numpy()  # [B, S, K, F, 4]
-            agent_ok = prediction.valid.numpy()  # [B, K]
-            state = model.current_state(batch).numpy()  # [B, K, 4]
-        t = (np.arange(1, F + 1) * model.config.dt)[None, :, None]
-        heading = np.stack([np.cos(state[..., 2]), np.sin(state[..., 2])], -1)
-        cv_xy = state[:, :, None, :2] + (state[:, :, None, 3:4] * t) * heading[:, :, None, :]
-        future = batch["future"].numpy()
-        valid = batch["future_valid"].numpy() & agent_ok[..., None]
-        for b, i in enumerate(idx):
-            keep = agent_ok[b]
-            if not keep.any():
-                continue
-            agents += int(keep.sum())
-            ok = valid[b][keep]  # [A, F]
-            gt = future[b][keep, :, :2]
-            p = pred[b][:, keep, :, :2]  # [S, A, F, 2]
-            c = cv_xy[b][keep][None]
-            ours.add(np.linalg.norm(p - gt, axis=-1), ok)
-            cv.add(np.linalg.norm(c - gt, axis=-1), ok)
-            origin = batch["origin"][b].numpy()
-            for acc, xy in ((ours, p), (cv, c)):
-                inside = points_in_area(areas[i], _to_world(xy, origin))  # [S, A, F]
-                mask = np.broadcast_to(ok, inside.shape)
-                acc.off[0] += int((~inside & mask).sum())
-                acc.off[1] += int(mask.sum())
-            log_in = points_in_area(areas[i], _to_world(gt, origin))
-            ours.log_off[0] += int((~log_in & ok).sum())
-            ours.log_off[1] += int(ok.sum())
+        agents += _score_chunk(model, batch, [areas[i] for i in idx], num_samples, g, ours, cv)
         if bar is not None:
             bar.update(len(idx))
     if bar is not None:
         bar.close()
+    return _summary(model, len(scenes), agents, num_samples, ours, cv)
 
-    def rate(pair: list[int]) -> float | None:
-        return pair[0] / pair[1] if pair[1] else None
 
+def _score_chunk(
+    model: WorldModel,
+    batch: dict[str, torch.Tensor],
+    areas: list,
+    num_samples: int,
+    g: torch.Generator,
+    ours: _Accumulator,
+    cv: _Accumulator,
+) -> int:
+    """Sample a batch of B scenes; add model and constant-velocity errors; return agents scored."""
+    F = model.config.future_steps
+    with torch.no_grad():
+        prediction = model.sample(batch, num_samples, g)
+        pred = prediction.trajectory.numpy()  # [B, S, K, F, 4]
+        agent_ok = prediction.valid.numpy()  # [B, K]
+        state = model.current_state(batch).numpy()  # [B, K, 4]
+    t = (np.arange(1, F + 1) * model.config.dt)[None, :, None]
+    heading = np.stack([np.cos(state[..., 2]), np.sin(state[..., 2])], -1)
+    cv_xy = state[:, :, None, :2] + (state[:, :, None, 3:4] * t) * heading[:, :, None, :]
+    future = batch["future"].numpy()
+    valid = batch["future_valid"].numpy() & agent_ok[..., None]
+    agents = 0
+    for b, area in enumerate(areas):
+        keep = agent_ok[b]
+        if not keep.any():
+            continue
+        agents += int(keep.sum())
+        ok = valid[b][keep]  # [A, F]
+        gt = future[b][keep, :, :2]
+        p = pred[b][:, keep, :, :2]  # [S, A, F, 2]
+        c = cv_xy[b][keep][None]
+        origin = batch["origin"][b].numpy()
+        _score_scene(area, origin, ok, gt, p, c, ours, cv)
+    return agents
+
+
+def _score_scene(
+    area,
+    origin: np.ndarray,
+    ok: np.ndarray,
+    gt: np.ndarray,
+    p: np.ndarray,
+    c: np.ndarray,
+    ours: _Accumulator,
+    cv: _Accumulator,
+) -> None:
+    """Add one scene's errors [m] and off-road counts (``p [S, A, F, 2]``, ``ok [A, F]``)."""
+    ours.add(np.linalg.norm(p - gt, axis=-1), ok)
+    cv.add(np.linalg.norm(c - gt, axis=-1), ok)
+    for acc, xy in ((ours, p), (cv, c)):
+        inside = points_in_area(area, from_frame(xy, origin))  # [S, A, F]
+        mask = np.broadcast_to(ok, inside.shape)
+        acc.off[0] += int((~inside & mask).sum())
+        acc.off[1] += int(mask.sum())
+    log_in = points_in_area(area, from_frame(gt, origin))
+    ours.log_off[0] += int((~log_in & ok).sum())
+    ours.log_off[1] += int(ok.sum())
+
+
+def _rate(pair: list[int]) -> float | None:
+    """``pair[0] / pair[1]``, or None if the denominator is 0."""
+    return pair[0] / pair[1] if pair[1] else None
+
+
+def _summary(
+    model: WorldModel,
+    scenes: int,
+    agents: int,
+    num_samples: int,
+    ours: _Accumulator,
+    cv: _Accumulator,
+) -> dict[str, Any]:
+    """The JSON summary of :func:`evaluate_model` from its accumulated sums."""
     return {
-        "scenes": len(scenes),
+        "scenes": scenes,
         "agents": agents,
         "samples": num_samples,
         "horizon_s": model.config.horizon,
@@ -158,12 +193,12 @@ def evaluate_model(
             "fde": ours.result("fde"),
             "min_ade_6": ours.result("min_ade"),
             "min_fde_6": ours.result("min_fde"),
-            "offroad_rate": rate(ours.off),
+            "offroad_rate": _rate(ours.off),
         },
         "constant_velocity": {
             "ade": cv.result("ade"),
             "fde": cv.result("fde"),
-            "offroad_rate": rate(cv.off),
+            "offroad_rate": _rate(cv.off),
         },
-        "log_offroad_rate": rate(ours.log_off),
+        "log_offroad_rate": _rate(ours.log_off),
     }

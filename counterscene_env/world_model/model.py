@@ -1,7 +1,7 @@
 """The world model: features from a scene window, the training loss, and batched sampling.
 
 A *batch* is a dict of tensors in the layout of
-:class:`counterscene_env.scene.dataset.SceneWindowDataset` (leading batch axis ``B``): ``history
+:class:`counterscene_env.world_model.dataset.SceneWindowDataset` (leading batch axis ``B``): ``history
 [B, K, H, 4]`` (x [m], y [m], yaw [rad], speed [m/s] in the ego frame), ``history_valid``,
 ``extents [B, K, 2]`` m, ``agent_valid``, ``map [B, M, P, 2]`` m, ``map_valid``, ``map_widths``,
 and for training ``future [B, K, F, 4]`` and ``future_valid``. Agents are valid when
@@ -29,12 +29,12 @@ from counterscene_env.dynamics import (
     unicycle_rollout,
     wrap_angle,
 )
-from counterscene_env.scene.dataset import WindowConfig
 from counterscene_env.world_model.cig import edge_features
 from counterscene_env.world_model.config import ModelConfig
 from counterscene_env.world_model.denoiser import Context, Denoiser
 from counterscene_env.world_model.map_guidance import lane_excess, steer_onto_lanes
 from counterscene_env.world_model.scheduler import CosineScheduler
+from counterscene_env.world_model.window import WindowConfig
 
 POSITION_SCALE = 20.0  # m: input positions are divided by this
 SPEED_SCALE = 10.0  # m/s
@@ -108,20 +108,9 @@ class WorldModel(nn.Module):
 
     # ------------------------------------------------------------------ data layout
     def window_config(self, stride: int = 10) -> WindowConfig:
-        """The :class:`WindowConfig` that builds batches this model reads."""
-        c = self.config
-        return WindowConfig(
-            history_steps=c.history_steps,
-            future_steps=c.future_steps,
-            num_agents=c.num_agents,
-            num_lanes=c.num_lanes,
-            lane_points=c.lane_points,
-            lane_segment_length=c.lane_segment_length,
-            map_radius=c.map_radius,
-            agent_radius=c.agent_radius,
-            stride=stride,
-            lane_anchors=c.lane_anchors,
-        )
+        """The :class:`WindowConfig` that builds batches this model reads
+        (``ModelConfig.window``)."""
+        return self.config.window(stride)
 
     @staticmethod
     def agent_mask(batch: dict[str, torch.Tensor]) -> torch.Tensor:

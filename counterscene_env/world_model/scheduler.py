@@ -3,7 +3,7 @@
 The API follows diffusers' schedulers: :meth:`CosineScheduler.set_timesteps` picks the steps,
 :meth:`CosineScheduler.step` takes the network output at one step and returns the next sample
 together with the predicted clean sample, the posterior mean and its standard deviation, the two
-quantities the counterfactual guidance edits (DESIGN 3.5).
+quantities the counterfactual guidance edits (docs/design.md, "Counterfactual guidance").
 
 Notation (paper, "Diffusion Generation"): ``abar_k = prod_{i<=k} (1 - beta_i)``,
 

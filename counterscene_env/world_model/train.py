@@ -28,9 +28,9 @@ from typing import Any
 import torch
 from torch.utils.data import default_collate
 
-from counterscene_env.scene.dataset import SceneWindowDataset, load_sources
 from counterscene_env.world_model.checkpoint import save_model
 from counterscene_env.world_model.config import preset as get_preset
+from counterscene_env.world_model.dataset import SceneWindowDataset, load_sources
 from counterscene_env.world_model.model import Normalization, WorldModel
 
 STATE_FILE = "last.pt"

@@ -2,8 +2,8 @@
 
 The world model sometimes under-turns: in a curve its plan runs straight on, over the verge
 (``docs/world_model.md``, "Where the off-road points come from"). A driver whose car drifts
-toward the edge steers back; this module is that reflex, applied by
-:mod:`counterscene_env.sim` at every step to every agent but the egos:
+toward the edge steers back; this module is that reflex, applied by the
+closed loop (``sim/motion.py``) at every step to every agent but the egos:
 
 - only a step that would take a centre from the drivable area to outside it is changed;
 - the new centre is the planned one moved sideways into the nearest lane strip whose direction
@@ -36,7 +36,7 @@ def lane_pieces(lines: np.ndarray, widths: np.ndarray) -> tuple[np.ndarray, ...]
     """Straight pieces of lane centre lines, for :func:`keep_on_lane`.
 
     Args:
-        lines: ``[S, P, 2]`` m, centre-line segments (``scene.dataset.lane_segments``).
+        lines: ``[S, P, 2]`` m, centre-line segments (``world_model.window.lane_segments``).
         widths: ``[S]`` m.
 
     Returns:

@@ -6,29 +6,58 @@ adversary in purple, other world-model traffic in light blue, the adversary's cu
 path as a purple polyline, and the conflict point as a red ring. ``render_mode="rgb_array"``
 returns ``[H, W, 3]`` uint8 (``screen_height`` x ``screen_width``, multiples of 16).
 
-:func:`save_video` writes frames to mp4 or gif with imageio (the ``video`` extra).
+:class:`CounterSceneViewer` reads the env through the small :class:`Viewable` interface (it
+never imports an env class). :func:`save_video` writes frames to mp4 or gif with imageio (the
+``video`` extra).
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import numpy as np
 import pygame
 from highway_env.envs.common.graphics import EnvViewer
 from highway_env.vehicle.graphics import VehicleGraphics
-
-if TYPE_CHECKING:
-    from counterscene_env.envs.single_agent import CounterSceneEnv
+from highway_env.vehicle.kinematics import Vehicle
 
 EGO_COLOR = VehicleGraphics.EGO_COLOR
 CRASHED_COLOR = VehicleGraphics.RED
 PLAN_COLOR = ADVERSARY_COLOR = (200, 40, 220)
 TRAFFIC_COLOR = (100, 200, 255)
 CONFLICT_COLOR = (230, 30, 30)
+
+
+@dataclass(frozen=True)
+class EpisodeView:
+    """What the CounterScene layer draws on top of highway-env's frame.
+
+    Attributes:
+        ego_hit: per ego, whether it is crashed or collided in the last policy step.
+        adversaries: scene rows of the egos' adversaries.
+        targets: per ego with an adversary, the adversary's remaining plan ``[F', 2]`` m (None:
+            not planned yet) and the conflict point ``[2]`` m.
+    """
+
+    ego_hit: tuple[bool, ...]
+    adversaries: frozenset[int]
+    targets: tuple[tuple[np.ndarray | None, np.ndarray], ...]
+
+
+class Viewable(Protocol):
+    """The viewer's interface to an env, beyond highway-env's ``AbstractEnv`` (``config``,
+    ``road``, ``vehicle``, ...): the ego vehicles, the traffic's vehicles by scene row, and
+    the episode's :class:`EpisodeView`."""
+
+    config: dict[str, Any]
+    controlled_vehicles: list[Vehicle]
+    traffic: Mapping[int, Vehicle]
+
+    def episode_view(self) -> EpisodeView: ...
 
 
 class CounterSceneViewer(EnvViewer):
@@ -38,7 +67,7 @@ class CounterSceneViewer(EnvViewer):
     off-screen ``rgb_array`` rendering needs no display, so it stays enabled here.
     """
 
-    def __init__(self, env: CounterSceneEnv) -> None:
+    def __init__(self, env: Viewable) -> None:
         if env.config["offscreen_rendering"] and not os.environ.get("DISPLAY"):
             # No window is opened off-screen; without a display SDL would complain.
             os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
@@ -53,36 +82,28 @@ class CounterSceneViewer(EnvViewer):
         if not self.enabled:
             return
         env = self.env
-        for k, v in enumerate(env.controlled_vehicles):
-            hit = v.crashed or env.ego_info(k)["collision"]
+        view = env.episode_view()
+        for v, hit in zip(env.controlled_vehicles, view.ego_hit, strict=True):
             v.color = CRASHED_COLOR if hit else EGO_COLOR
-        adversaries = set(env.loop.episodes[0].adversaries)
         for row, v in env.traffic.items():
-            v.color = ADVERSARY_COLOR if row in adversaries else TRAFFIC_COLOR
+            v.color = ADVERSARY_COLOR if row in view.adversaries else TRAFFIC_COLOR
         super().display()
         if env.config["show_adversary_plan"]:
-            self._draw_adversaries()
+            self._draw_adversaries(view)
             if not self.offscreen:
                 self.screen.blit(self.sim_surface, (0, 0))
                 pygame.display.flip()
 
-    def _draw_adversaries(self) -> None:
-        env, surface = self.env, self.sim_surface
-        loop = env.loop
-        ep = loop.episodes[0]
+    def _draw_adversaries(self, view: EpisodeView) -> None:
+        surface = self.sim_surface
         width = max(2, surface.pix(0.3))
-        for k in range(len(env.egos)):
-            conflict = loop.selection(0, k).conflict
-            if conflict is None:
-                continue
-            plan = loop.plan(0, conflict.agent)
+        for plan, conflict_point in view.targets:
             if plan is not None:
                 # The rest of the current plan, from the adversary's next step on.
-                k0 = max(0, ep.t + 1 - int(ep.plan_start[conflict.agent]))
-                points = [surface.vec2pix(p) for p in plan[k0:]]
+                points = [surface.vec2pix(p) for p in plan]
                 if len(points) > 1:
                     pygame.draw.lines(surface, PLAN_COLOR, False, points, width)
-            centre = surface.vec2pix(conflict.conflict_point)
+            centre = surface.vec2pix(conflict_point)
             radius = max(6, surface.pix(2.0))
             pygame.draw.circle(surface, CONFLICT_COLOR, centre, radius, width)
             d = int(radius * 0.7)

@@ -3,7 +3,7 @@
 The world model plans every agent jointly, but its plans are open-loop for ``replan_every``
 steps and a sample that is 1 m off in a dense intersection puts two boxes on top of each other.
 Human drivers do not follow a plan into an occupied spot: they brake. This module is that
-reflex, applied by :mod:`counterscene_env.sim` to the ordinary traffic at every step:
+reflex, applied by the closed loop (``sim/motion.py``) to the ordinary traffic at every step:
 
 - the agent keeps the *path* the world model planned (so its route, lane and turn are the
   model's), and only its *progress* along that path may fall behind the plan's schedule;

@@ -1,11 +1,13 @@
-"""Training windows: fixed-size (history, future, map, validity) tensors in the ego frame.
+"""The world model's input contract: fixed-size (history, future, map, validity) windows in
+the ego frame.
 
 Each item is one scene at one "now" step ``t0``: the ego and its ``num_agents - 1`` nearest
 vehicles at ``t0`` (ego first, then by distance, zero-padded), their states over the
 ``history_steps`` frames ending at ``t0`` and the ``future_steps`` frames after it, and the
 ``num_lanes`` lane segments nearest the ego (``lane_anchors="ego"``) or nearest the places the
 window's agents are and are heading to (``"agents"``). Everything is expressed in the
-ego-centred frame of DESIGN 3.1: the ego at the origin, heading along +x, at ``t0``.
+ego-centred frame (docs/design.md, "Ego-centred frame"): the ego at the origin, heading
+along +x, at ``t0``.
 
 Item keys (K agents, H history frames, F future frames, M lane segments of P points):
 
@@ -28,25 +30,33 @@ key                 shape, dtype        meaning
 ==================  ==================  =====================================================
 
 Invalid entries (padding, frames where an agent is absent) are zero, never NaN.
+
+The closed loop builds windows with :func:`make_window` and batches them with :func:`collate`;
+training reads them through ``world_model.dataset.SceneWindowDataset``.
 """
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
 
-from counterscene_env.geometry import arc_length
+from counterscene_env.config import LaneAnchors, check_choices, choice_field
+from counterscene_env.geometry import arc_length, to_frame, wrap_angle
 from counterscene_env.scene.core import Scene
-from counterscene_env.scene.datagen import MANIFEST, shard_paths
-from counterscene_env.scene.shards import load_scenes
 
-LANE_ANCHORS = ("ego", "agents")
+#: Keys of a window that the model reads (``collate`` stacks these).
+MODEL_KEYS = (
+    "history",
+    "history_valid",
+    "extents",
+    "agent_valid",
+    "map",
+    "map_valid",
+    "map_widths",
+)
 
 
 @dataclass(frozen=True)
@@ -81,56 +91,10 @@ class WindowConfig:
     map_radius: float = 60.0
     agent_radius: float | None = None
     stride: int = 10
-    lane_anchors: str = "ego"
+    lane_anchors: str = choice_field(LaneAnchors, LaneAnchors.EGO)
 
     def __post_init__(self) -> None:
-        if self.lane_anchors not in LANE_ANCHORS:
-            raise ValueError(
-                f"lane_anchors must be one of {LANE_ANCHORS}, got {self.lane_anchors!r}"
-            )
-
-
-class SceneWindowDataset(Dataset):
-    """Windows over scenes from shard files or dataset directories (see module docstring).
-
-    Args:
-        sources: dataset directories (with ``manifest.json``), shard files, or ``Scene`` objects.
-        config: window sizes.
-
-    Windows are all ``t0`` in ``[history_steps - 1, T - future_steps - 1]`` (step ``stride``)
-    at which the ego is valid.
-    """
-
-    def __init__(
-        self,
-        sources: Sequence[str | os.PathLike | Scene] | str | os.PathLike,
-        config: WindowConfig | None = None,
-    ) -> None:
-        self.config = config or WindowConfig()
-        self.scenes: list[Scene] = load_sources(sources)
-        c = self.config
-        self._segments = [
-            lane_segments(s, c.lane_segment_length, c.lane_points) for s in self.scenes
-        ]
-        self.index: list[tuple[int, int]] = []
-        for i, s in enumerate(self.scenes):
-            first, last = c.history_steps - 1, s.num_steps - c.future_steps - 1
-            self.index += [
-                (i, t) for t in range(first, last + 1, c.stride) if s.valid[s.ego_index, t]
-            ]
-
-    def __len__(self) -> int:
-        return len(self.index)
-
-    def __getitem__(self, item: int) -> dict[str, torch.Tensor]:
-        i, t0 = self.index[item]
-        return {k: torch.from_numpy(np.asarray(v)) for k, v in self.window(i, t0).items()}
-
-    def window(self, scene_index: int, t0: int) -> dict[str, np.ndarray]:
-        """The window of one scene at one step, as numpy arrays (see the module docstring)."""
-        window = make_window(self.scenes[scene_index], t0, self.config, self._segments[scene_index])
-        window["scene_index"] = np.int64(scene_index)
-        return window
+        check_choices(self)
 
 
 def make_window(
@@ -166,7 +130,9 @@ def make_window(
     forced = [int(i) for i in include if i != scene.ego_index and scene.valid[i, t0]]
     rest = [int(i) for i in nearest[1:] if int(i) not in forced]
     rows = np.array([scene.ego_index, *forced, *rest], dtype=np.int64)[:K]
-    to_ego = _frame_transform(origin)
+
+    def to_ego(points: np.ndarray) -> np.ndarray:
+        return to_frame(points, origin).astype(np.float32)
 
     def states(t_lo: int, t_hi: int) -> tuple[np.ndarray, np.ndarray]:
         out = np.zeros((K, t_hi - t_lo, 4), np.float32)
@@ -178,7 +144,7 @@ def make_window(
         sl = slice(lo - t_lo, hi - t_lo)
         ok[: len(rows), sl] = scene.valid[rows, lo:hi]
         xy = to_ego(scene.positions[rows, lo:hi])
-        yaw = _wrap(scene.yaws[rows, lo:hi] - origin[2])
+        yaw = wrap_angle(scene.yaws[rows, lo:hi] - origin[2])
         out[: len(rows), sl] = np.concatenate(
             [xy, yaw[..., None], scene.speeds[rows, lo:hi, None]], -1
         )
@@ -238,35 +204,6 @@ def _anchors(scene: Scene, rows: np.ndarray, t0: int, future_steps: int) -> np.n
     return np.concatenate([pos, pos + 0.5 * reach * heading, pos + reach * heading])
 
 
-def load_sources(
-    sources: Sequence[str | os.PathLike | Scene] | str | os.PathLike,
-) -> list[Scene]:
-    """Scenes from dataset directories (with ``manifest.json``), shard files or ``Scene``s."""
-    if isinstance(sources, (str, os.PathLike)):
-        sources = [sources]
-    scenes: list[Scene] = []
-    for src in sources:
-        if isinstance(src, Scene):
-            scenes.append(src)
-        elif (Path(src) / MANIFEST).is_file():
-            for shard in shard_paths(src):
-                scenes.extend(load_scenes(shard))
-        else:
-            scenes.extend(load_scenes(src))
-    return scenes
-
-
-def _frame_transform(origin: np.ndarray):
-    """World -> ego frame: translate by -origin[:2], rotate by -origin[2]."""
-    c, s = np.cos(origin[2]), np.sin(origin[2])
-    rot = np.array([[c, -s], [s, c]])  # columns: ego x and y axes in world coordinates
-
-    def apply(points: np.ndarray) -> np.ndarray:
-        return ((points - origin[:2]) @ rot).astype(np.float32)
-
-    return apply
-
-
 def lane_segments(scene: Scene, length: float, points: int) -> tuple[np.ndarray, np.ndarray]:
     """Cut every centre line into pieces of ``length`` m resampled to ``points`` points.
 
@@ -291,5 +228,7 @@ def lane_segments(scene: Scene, length: float, points: int) -> tuple[np.ndarray,
     return np.stack(segs), np.asarray(widths)
 
 
-def _wrap(angle: np.ndarray) -> np.ndarray:
-    return (angle + np.pi) % (2 * np.pi) - np.pi
+def collate(windows: Sequence[dict[str, np.ndarray]]) -> dict[str, torch.Tensor]:
+    """Stack the model's keys (:data:`MODEL_KEYS`) of several windows into a batch
+    (leading axis ``B``)."""
+    return {k: torch.from_numpy(np.stack([w[k] for w in windows])) for k in MODEL_KEYS}

@@ -1,0 +1,93 @@
+"""Closed-loop settings: :class:`SimConfig`, the one source of every simulation setting.
+
+Each field is also a ``CounterScene-v0`` config key and a ``counterscene stress`` flag, both
+derived from this dataclass (``counterscene_env.config``): add a field here, with its entry in
+the docstring, and it is reachable from every front end.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+from counterscene_env.config import (
+    GuidancePreset,
+    Sampler,
+    SelectionSource,
+    Selector,
+    check_choices,
+    choice_field,
+    from_mapping,
+)
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Closed-loop settings.
+
+    Attributes:
+        duration: closed-loop length after "now" [s]; capped by the log's length.
+        replan_every: steps between world-model replans (5 = 0.5 s).
+        num_samples: samples per replan; the one with the lowest guidance loss plus
+            realism cost is kept (paper protocol: 16).
+        selector: causal (the paper's conflict mining) or a baseline: random, distance
+            (nearest), ttc (smallest time to collision).
+        selection_source: log (mined once on the factual future) or model (mined at every
+            replan on the world model's unguided prediction).
+        strict_gates: the strict selection gates (d_min < 15 m, arrival gap < 1.5 s,
+            encounter before the last step, adversary moving; docs/design.md, "Causal
+            adversary selection"); off in the paper.
+        guidance: a guidance preset: full, no_jerk, no_conflict_aware, no_progressive,
+            no_adaptive, minimal, none.
+        sampler: the world model's sampler, ddim or ddpm (None: the model's default).
+        sampling_steps: denoising steps of the strided sampler (None: the model's default).
+        eta: noise scale of the strided sampler, 0 (DDIM) to 1 (DDPM posterior) (None: the
+            model's default).
+        map_guidance: step size of the world model's map guidance on every agent (None: the
+            model's default).
+        realism_weight: weight of the realism cost (agents overlapping or off their lanes,
+            sim/realism.py) in the choice among samples; 0: guidance loss only.
+        cover_radius: an agent is planned from a model window only if it is within this many
+            metres of the window's centre [m]; farther agents get windows of their own.
+        max_windows: model windows per episode and replan (the ego's plus extra ones).
+        traffic_yields: ordinary traffic slows along its planned path rather than drive into
+            another agent's box (sim/yielding.py); egos and a guided adversary never yield.
+            False: every plan is followed to the letter.
+        road_keeping: a step that would take an agent other than an ego off the road is moved
+            sideways onto its lane (sim/road_keeping.py). False: the plans' own off-road
+            steps stand.
+    """
+
+    duration: float = 10.0
+    replan_every: int = 5
+    num_samples: int = 4
+    selector: str = choice_field(Selector, Selector.CAUSAL)
+    selection_source: str = choice_field(SelectionSource, SelectionSource.LOG)
+    strict_gates: bool = True
+    guidance: str = choice_field(GuidancePreset, GuidancePreset.FULL)
+    sampler: str | None = choice_field(Sampler, None)
+    sampling_steps: int | None = None
+    eta: float | None = None
+    map_guidance: float | None = None
+    realism_weight: float = 1.0
+    cover_radius: float = 25.0
+    max_windows: int = 1
+    traffic_yields: bool = True
+    road_keeping: bool = True
+
+    def __post_init__(self) -> None:
+        if not self.duration > 0:
+            raise ValueError(f"duration must be > 0 s, got {self.duration}")
+        if self.replan_every < 1:
+            raise ValueError(f"replan_every must be >= 1 step, got {self.replan_every}")
+        if self.num_samples < 1:
+            raise ValueError(f"num_samples must be >= 1, got {self.num_samples}")
+        if not math.isfinite(self.realism_weight) or self.realism_weight < 0:
+            raise ValueError(f"realism_weight must be >= 0, got {self.realism_weight}")
+        check_choices(self)
+
+    @classmethod
+    def from_mapping(cls, values: Mapping) -> SimConfig:
+        """Build from a dict; unknown keys raise and name the valid ones."""
+        return from_mapping(cls, values, "simulation")

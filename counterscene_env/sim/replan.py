@@ -1,0 +1,330 @@
+"""Replanning: model windows, one batched world-model call, the choice among samples, and
+adversary selection (paper, Algorithm 1; docs/design.md, "Data flow").
+
+At a replan every due episode contributes its windows (each ego's own window first, where its
+adversary is guided), all windows of all episodes go to the world model in one call, and per
+window the sample with the lowest guidance loss plus realism cost is kept. The chosen sample's
+rows become the agents' plans (world frame); agents the model planned before but no longer
+sees are handed to the IDM lane follower (``sim/traffic.py``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from counterscene_env.adversary.guidance import (
+    GuidanceConfig,
+    make_guidance_hook,
+    make_targets,
+    sample_losses,
+)
+from counterscene_env.adversary.selection import Selection, select_adversary
+from counterscene_env.geometry import from_frame, wrap_angle
+from counterscene_env.scene.core import Scene
+from counterscene_env.sim.config import SimConfig
+from counterscene_env.sim.realism import plan_cost
+from counterscene_env.sim.state import Episode, ModelWindow
+from counterscene_env.sim.traffic import IDMLaneFollower
+from counterscene_env.world_model.model import WorldModel
+from counterscene_env.world_model.window import collate, make_window
+
+
+class Replanner:
+    """Selects adversaries and re-plans episodes with one world-model call per replan.
+
+    Args:
+        model: the world model (in eval mode).
+        config: closed-loop settings.
+        guidance: the guidance preset's settings (``adversary.guidance.guidance_preset``).
+    """
+
+    def __init__(self, model: WorldModel, config: SimConfig, guidance: GuidanceConfig) -> None:
+        self.model = model
+        self.config = config
+        self.guidance = guidance
+        self.window_config = model.window_config()
+        self.sample_kwargs = dict(
+            sampler=config.sampler,
+            steps=config.sampling_steps,
+            eta=config.eta,
+            map_guidance=config.map_guidance,
+        )
+
+    # ------------------------------------------------------------------ selection
+    def select_on_log(self, ep: Episode) -> None:
+        """Select every ego's adversary on the factual future (``selection_source="log"``)."""
+        s, lo, hi = ep.factual, ep.start + 1, ep.end + 1
+        future = s.positions[:, lo:hi], s.valid[:, lo:hi], s.speeds[:, lo:hi]
+        for k in range(len(ep.egos)):
+            ep.selections[k] = self.select(ep, k, *future, start_step=ep.start + 1)
+
+    def select(
+        self,
+        ep: Episode,
+        k: int,
+        positions: np.ndarray,
+        valid: np.ndarray,
+        speeds: np.ndarray,
+        start_step: int,
+        rows: np.ndarray | None = None,
+        yaws: np.ndarray | None = None,
+    ) -> Selection:
+        """Ego ``k``'s adversary on future tracks ``positions [A, F, 2]`` m, ``valid [A, F]``,
+        ``speeds [A, F]`` m/s; ``rows`` maps their rows to scene rows (None: identity).
+        Other egos, and the adversaries of egos before ``k``, are not eligible: every ego gets
+        its own world-model adversary."""
+        scene = ep.factual
+        rows = np.arange(scene.num_agents) if rows is None else rows
+        ego = int(np.flatnonzero(rows == ep.egos[k])[0])
+        taken = set(ep.egos) | {a for a in ep.adversaries[:k] if a is not None}
+        eligible = (scene.agent_types[rows] == "vehicle") & ~np.isin(rows, sorted(taken))
+        sel = select_adversary(
+            self.config.selector,
+            positions,
+            valid,
+            ego,
+            speeds=speeds,
+            extents=scene.extents[rows],
+            yaws=yaws,
+            eligible=eligible,
+            dt=scene.dt,
+            start_step=start_step,
+            strict=self.config.strict_gates,
+            rng=ep.rng,
+        )
+        if sel.conflict is not None:  # back to scene rows
+            agent = int(rows[sel.conflict.agent])
+            sel = dataclasses.replace(sel, conflict=dataclasses.replace(sel.conflict, agent=agent))
+        return sel
+
+    def _reselect_on_model(self, eps: Sequence[Episode], sims: Sequence[Scene]) -> None:
+        """``selection_source="model"``: re-select on the world model's own unguided
+        prediction of each ego's window."""
+        owner, items = [], []
+        for i, (sim, ep) in enumerate(zip(sims, eps, strict=True)):
+            for ego in ep.egos:
+                view = sim if ego == sim.ego_index else sim.replace(ego_index=ego)
+                items.append(make_window(view, ep.t, self.window_config, ep.segments))
+                owner.append(i)
+        gens = [eps[o].generator for o in owner]
+        pred = self.model.sample(collate(items), 1, gens, **self.sample_kwargs)
+        for j, (o, item) in enumerate(zip(owner, items, strict=True)):
+            ep = eps[o]
+            k = ep.egos.index(int(item["rows"][0]))
+            ok = (item["rows"] >= 0) & pred.valid[j].numpy()
+            traj = pred.trajectory[j, 0].numpy()[ok]  # [A, F, 4] window frame
+            xy = from_frame(traj[..., :2], item["origin"])
+            yaw = wrap_angle(traj[..., 2] + item["origin"][2])
+            valid = np.ones(xy.shape[:2], bool)
+            rows = item["rows"][ok]
+            ep.selections[k] = self.select(ep, k, xy, valid, traj[..., 3], ep.t + 1, rows, yaw)
+
+    # ------------------------------------------------------------------ windows
+    def windows(self, ep: Episode, sim: Scene) -> list[ModelWindow]:
+        """The model windows of one episode at its current step.
+
+        The first E are centred on the E egos, each with its adversary forced in; an agent
+        seen by several is planned by the first (its adversary's by its own, where it is
+        guided). Agents farther than ``cover_radius`` from every window centre get windows of
+        their own, centred on the uncovered agent nearest the ego, up to ``max_windows``: the
+        model sees the lanes and neighbours around each agent it plans, not only around the
+        ego. The default is one window (``max_windows=1``): the shipped model, trained on
+        ego-centred windows, drives worse in windows centred on other agents (measured,
+        docs/closed_loop.md). Agents left uncovered continue as IDM lane followers.
+        """
+        c, t, wc = self.config, ep.t, self.window_config
+        e = sim.ego_index
+        pos = sim.positions[:, t]
+        movable = sim.valid[:, t] & (sim.agent_types == "vehicle")
+        movable[ep.egos] = False
+        adversaries = [a for a in ep.adversaries if a is not None]
+        windows: list[ModelWindow] = []
+        claimed = np.zeros(sim.num_agents, bool)
+        claimed[ep.egos] = True
+        claimed[adversaries] = True
+        covered = np.zeros(sim.num_agents, bool)
+        for ego, adv in zip(ep.egos, ep.adversaries, strict=True):
+            include = () if adv is None else (adv,)
+            view = sim if ego == e else sim.replace(ego_index=ego)
+            item = make_window(view, t, wc, ep.segments, include=include)
+            rows = item["rows"][item["rows"] >= 0]
+            mine = [int(r) for r in rows if not claimed[r]]
+            own = [] if adv is None or adv not in rows else [adv]
+            windows.append(_window(item, own + mine, ego=len(windows)))
+            claimed[mine] = True
+            near = np.linalg.norm(pos[rows] - pos[ego], axis=-1) <= c.cover_radius
+            covered[rows[near]] = True
+        covered[adversaries] = True  # guided in their ego's window, wherever they are
+        while len(windows) < max(c.max_windows, len(ep.egos)):
+            left = np.flatnonzero(movable & ~covered)
+            if not left.size:
+                break
+            centre = int(left[np.argmin(np.linalg.norm(pos[left] - pos[e], axis=-1))])
+            item = make_window(sim.replace(ego_index=centre), t, wc, ep.segments)
+            rows = item["rows"][item["rows"] >= 0]
+            mine = rows[
+                movable[rows]
+                & ~covered[rows]
+                & (np.linalg.norm(pos[rows] - pos[centre], axis=-1) <= c.cover_radius)
+            ]
+            windows.append(_window(item, [int(r) for r in mine], ego=-1))
+            covered[mine] = True
+            covered[centre] = True
+        return windows
+
+    # ------------------------------------------------------------------ the replan
+    def __call__(self, eps: Sequence[Episode]) -> None:
+        """Re-plan every agent of the episodes ``eps`` from their simulated histories."""
+        started = time.perf_counter()
+        sims = [simulated_scene(ep) for ep in eps]
+        if self.config.selection_source == "model":
+            self._reselect_on_model(eps, sims)
+        # Every window of every episode in one batched call; each ego's own window first.
+        owner: list[int] = []
+        windows: list[ModelWindow] = []
+        for i, (sim, ep) in enumerate(zip(sims, eps, strict=True)):
+            for window in self.windows(ep, sim):
+                owner.append(i)
+                windows.append(window)
+        pred, best = self._sample(eps, owner, windows)
+        traj = pred.trajectory.numpy()
+        for j, (o, window) in enumerate(zip(owner, windows, strict=True)):
+            _apply_plan(eps[o], window, traj[j, best[j]], pred.valid[j])
+        planned_now: dict[int, set[int]] = {}
+        for o, window in zip(owner, windows, strict=True):
+            planned_now.setdefault(o, set()).update(window.plan_rows)
+        for i, ep in enumerate(eps):
+            _hand_over(ep, planned_now.get(i, set()))
+        for ep in eps:
+            ep.replans += 1
+            ep.replan_seconds += (time.perf_counter() - started) / len(eps)
+
+    def _sample(
+        self, eps: Sequence[Episode], owner: list[int], windows: list[ModelWindow]
+    ) -> tuple[object, np.ndarray]:
+        """One guided sampling call for every window; returns the model's prediction and the
+        ``[W]`` index of the sample kept per window."""
+        c, g = self.config, self.guidance
+        batch = collate([w.arrays for w in windows])
+        conflicts = [
+            eps[o].selections[w.ego].conflict if w.ego >= 0 else None
+            for w, o in zip(windows, owner, strict=True)
+        ]
+        adv_rows = [
+            -1 if conflict is None else w.row_of(conflict.agent)
+            for w, conflict in zip(windows, conflicts, strict=True)
+        ]
+        S = c.num_samples
+        targets = make_targets(
+            conflicts,
+            adv_rows,
+            np.stack([w.origin for w in windows]),
+            [eps[o].t for o in owner],
+            [(eps[o].t - eps[o].start) / (eps[o].end - eps[o].start) for o in owner],
+            g,
+        )
+        hook = make_guidance_hook(self.model, batch, targets, S, g) if g.enabled else None
+        gens = [eps[o].generator for o in owner]
+        pred = self.model.sample(batch, S, gens, guidance=hook, **self.sample_kwargs)
+        ego_rows = [
+            [r for r in (w.row_of(e) for e in eps[o].egos) if r >= 0]
+            for w, o in zip(windows, owner, strict=True)
+        ]
+        best = np.zeros(len(windows), np.int64)
+        if S > 1:
+            best = self.choose(batch, pred, hook, adv_rows, ego_rows).numpy()
+        return pred, best
+
+    def choose(
+        self, batch, pred, hook, adv_rows: list[int], ego_rows: list[list[int]]
+    ) -> torch.Tensor:
+        """``[W]`` best sample per window: lowest guidance loss plus ``realism_weight`` times
+        the realism cost of everyone but the egos (whose plans are never executed) and the
+        adversary (which the guidance steers)."""
+        W, S, K = pred.trajectory.shape[:3]
+        cost = torch.zeros(W, S)
+        if hook is not None:
+            cost += sample_losses(self.model, hook, pred.normalized, self.guidance)
+        w = self.config.realism_weight
+        if w > 0:
+            exclude = torch.zeros(W, K, dtype=torch.bool)
+            for j, (adv, egos) in enumerate(zip(adv_rows, ego_rows, strict=True)):
+                for row in (adv, *egos):
+                    if row >= 0:
+                        exclude[j, row] = True
+            rep = lambda x: x.repeat_interleave(S, 0)  # noqa: E731
+            traj = self._egos_held(batch, pred, ego_rows)
+            lanes = tuple(rep(batch[k]) for k in ("map", "map_valid", "map_widths"))
+            cost += w * plan_cost(
+                traj, rep(pred.valid), rep(batch["extents"]), lanes, rep(exclude)
+            ).reshape(W, S)
+        return cost.argmin(-1)
+
+    def _egos_held(self, batch, pred, ego_rows: list[list[int]]) -> torch.Tensor:
+        """``[W S, K, F, 4]`` the samples with each ego held at its current speed and course.
+
+        The ego's future is its policy's, not the model's guess: agents are scored against
+        the ego held at its current speed and course (a braking or stopped ego must not be
+        run into because the model expected it to drive on)."""
+        W, S = pred.trajectory.shape[:2]
+        traj = pred.trajectory.reshape(W * S, *pred.trajectory.shape[2:]).clone()
+        state = self.model.current_state(batch).repeat_interleave(S, 0)  # [W S, K, 4]
+        steps = torch.arange(1, traj.shape[-2] + 1, dtype=traj.dtype) * self.model.config.dt
+        for j, egos in enumerate(ego_rows):
+            for ego in egos:
+                x, y, course, v = state[j * S, ego].unbind(-1)
+                path = torch.stack(
+                    [x + v * steps * torch.cos(course), y + v * steps * torch.sin(course)], -1
+                )
+                traj[j * S : (j + 1) * S, ego, :, :2] = path
+                traj[j * S : (j + 1) * S, ego, :, 2] = course
+        return traj
+
+
+def simulated_scene(ep: Episode) -> Scene:
+    """The simulated scene of an episode up to its step ``t`` (later frames invalid)."""
+    valid = ep.valid.copy()
+    valid[:, ep.t + 1 :] = False
+    return ep.factual.replace(positions=ep.positions, yaws=ep.yaws, speeds=ep.speeds, valid=valid)
+
+
+def _window(item: dict, plan_rows: list[int], ego: int) -> ModelWindow:
+    return ModelWindow(
+        arrays=item, rows=item["rows"], origin=item["origin"], plan_rows=plan_rows, ego=ego
+    )
+
+
+def _apply_plan(ep: Episode, window: ModelWindow, chosen: np.ndarray, valid) -> None:
+    """Write the chosen sample ``[K, F, 4]`` (window frame) as the plans of the window's
+    ``plan_rows`` that the model could plan (``valid [K]``)."""
+    lookup = {int(r): k for k, r in enumerate(window.rows) if r >= 0}
+    rows = np.array([r for r in window.plan_rows if valid[lookup[r]]], dtype=np.int64)
+    if not rows.size:
+        return
+    plan = chosen[np.array([lookup[r] for r in rows])]  # [A, F, 4] window frame
+    ep.plan_positions[rows] = from_frame(plan[..., :2], window.origin)
+    ep.plan_yaws[rows] = wrap_angle(plan[..., 2] + window.origin[2])
+    ep.plan_speeds[rows] = plan[..., 3]
+    ep.plan_start[rows] = ep.t + 1
+    ep.planned[rows] = True
+    ep.progress[rows] = 0.0
+
+
+def _hand_over(ep: Episode, planned_now: set[int]) -> None:
+    """Agents the model planned before but no longer sees (they left its window) continue as
+    highway-env IDM lane followers rather than on a stale open-loop plan; an agent back in
+    view is the model's again."""
+    for r in list(ep.background):
+        if r in planned_now:
+            del ep.background[r]
+    for r in np.flatnonzero(ep.planned & ep.valid[:, ep.t]):
+        r = int(r)
+        if r not in planned_now and r not in ep.background and r not in ep.egos:
+            idm = IDMLaneFollower()
+            idm.reset(ep.factual, int(ep.rng.integers(2**31)), agent=r, t=ep.t)
+            ep.background[r] = idm
