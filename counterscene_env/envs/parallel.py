@@ -22,7 +22,8 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from counterscene_env.envs.single_agent import CounterSceneEnv, check_action
+from counterscene_env.envs.single_agent import CounterSceneEnv
+from counterscene_env.envs.spaces import check_action
 
 
 class CounterSceneParallelEnv(ParallelEnv):

@@ -11,7 +11,6 @@ docstring of :class:`CounterSceneEnv` and ``docs/environment.md``.
 
 from __future__ import annotations
 
-import numbers
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -26,17 +25,22 @@ from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from counterscene_env import metrics
-from counterscene_env.config import defaults
+from counterscene_env.envs.config import (
+    UNUSED_BASE_KEYS,
+    counterscene_defaults,
+    sim_settings,
+    validate,
+)
 from counterscene_env.envs.render import CounterSceneViewer, EpisodeView
+from counterscene_env.envs.spaces import (
+    LANE_FREE_FEATURES,
+    as_highway_action,
+    bounded_space,
+    check_action,
+)
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import SceneSource
 from counterscene_env.sim import ClosedLoop, SimConfig
-
-#: Keys of highway-env's base config that mean nothing here (the traffic is the world model).
-_UNUSED_BASE_KEYS = ("other_vehicles_type",)
-#: Config keys that are closed-loop settings: every ``SimConfig`` field, by the same name
-#: and with the same default (one source: add a field there and it is a key here).
-SIM_KEYS = tuple(defaults(SimConfig))
 
 _MODELS: dict[str, Any] = {}
 
@@ -142,48 +146,9 @@ class CounterSceneEnv(AbstractEnv):
     @classmethod
     def default_config(cls) -> dict:
         config = super().default_config()
-        for key in _UNUSED_BASE_KEYS:
+        for key in UNUSED_BASE_KEYS:
             config.pop(key)
-        config.update(
-            {
-                # Scenes and traffic; then every closed-loop setting (SimConfig's fields)
-                "scenario": "intersection",
-                "model": "default",
-                **defaults(SimConfig),
-                # The ego: highway-env observation and action types
-                "observation": {
-                    "type": "Kinematics",
-                    "vehicles_count": 10,
-                    "features": ["presence", "x", "y", "vx", "vy", "cos_h", "sin_h"],
-                    "features_range": {
-                        "x": [-100, 100],
-                        "y": [-100, 100],
-                        "vx": [-20, 20],
-                        "vy": [-20, 20],
-                    },
-                    "absolute": False,
-                    "see_behind": True,
-                },
-                "action": {"type": "ContinuousAction"},
-                "controlled_vehicles": 1,
-                "simulation_frequency": 10,  # [Hz], the scenes' 0.1 s step
-                "policy_frequency": 10,  # [Hz]
-                # Rewards and episode end
-                "collision_reward": -5.0,
-                "off_road_reward": -1.0,
-                "hard_braking_reward": -0.5,
-                "high_speed_reward": 1.0,
-                "reward_speed_range": [5.0, 15.0],  # [m/s]
-                "terminate_on_collision": True,
-                "terminate_on_off_road": True,
-                # Rendering
-                "screen_width": 640,  # [px]
-                "screen_height": 640,  # [px]
-                "centering_position": [0.5, 0.5],
-                "scaling": 5.5,  # [px/m]
-                "show_adversary_plan": True,
-            }
-        )
+        config.update(counterscene_defaults())
         return config
 
     def configure(self, config: Mapping | None) -> None:
@@ -197,50 +162,10 @@ class CounterSceneEnv(AbstractEnv):
                 )
         candidate = dict(self.config)
         candidate.update(config or {})
-        self._validate(candidate)
+        validate(candidate)
         source = SceneSource(candidate["scenario"])  # raises on an unknown scenario
         super().configure(dict(config or {}))  # nothing changes before every check passed
         self._source = source
-
-    @staticmethod
-    def _validate(config: dict) -> None:
-        sim = 10
-        if config["simulation_frequency"] != sim:
-            raise ValueError(
-                f"simulation_frequency must be {sim} Hz (the scenes' 0.1 s step), "
-                f"got {config['simulation_frequency']}"
-            )
-        pf = config["policy_frequency"]
-        if not isinstance(pf, numbers.Integral) or pf < 1 or sim % pf:
-            raise ValueError(f"policy_frequency must divide {sim} Hz (1, 2, 5, 10), got {pf!r}")
-        for key in ("screen_width", "screen_height"):
-            if config[key] % 16:
-                raise ValueError(
-                    f"{key} must be a multiple of 16 px (video codecs), got {config[key]}"
-                )
-        n = config["controlled_vehicles"]
-        if not isinstance(n, numbers.Integral) or n < 1:
-            raise ValueError(f"controlled_vehicles must be an int >= 1, got {n!r}")
-        obs, act = config["observation"], config["action"]
-        multi = (obs.get("type") == "MultiAgentObservation", act.get("type") == "MultiAgentAction")
-        if n > 1 and not all(multi):
-            raise ValueError(
-                f"controlled_vehicles = {n} needs highway-env's multi-agent types: observation "
-                "{'type': 'MultiAgentObservation', 'observation_config': {...}} and action "
-                "{'type': 'MultiAgentAction', 'action_config': {...}} (or use "
-                "counterscene_env.parallel_env)"
-            )
-        obs = obs.get("observation_config", obs)
-        act = act.get("action_config", act)
-        if obs.get("type") == "TimeToCollision" and act.get("type") != "DiscreteMetaAction":
-            raise ValueError(
-                "the TimeToCollision observation needs the DiscreteMetaAction action type "
-                "(its grid is over the ego's target speeds)"
-            )
-        lo, hi = config["reward_speed_range"]
-        if not hi > lo:
-            raise ValueError(f"reward_speed_range must be [low, high] m/s, got {[lo, hi]}")
-        SimConfig.from_mapping(_sim_settings(config))  # selector, guidance, ... (raises)
 
     def define_spaces(self) -> None:
         """highway-env's spaces, with the ``Kinematics`` box bounded to [-1, 1] when every
@@ -250,12 +175,12 @@ class CounterSceneEnv(AbstractEnv):
         obs = obs.get("observation_config", obs)
         self._needs_lanes = not (
             obs.get("type") == "Kinematics"
-            and set(obs.get("features", KinematicObservation.FEATURES)) <= _LANE_FREE_FEATURES
+            and set(obs.get("features", KinematicObservation.FEATURES)) <= LANE_FREE_FEATURES
         )
         if isinstance(self.observation_space, spaces.Tuple):
             self.observation_space = spaces.Tuple(
                 [
-                    _bounded(space, t)
+                    bounded_space(space, t)
                     for space, t in zip(
                         self.observation_space.spaces,
                         self.observation_type.agents_observation_types,
@@ -264,11 +189,11 @@ class CounterSceneEnv(AbstractEnv):
                 ]
             )
         else:
-            self.observation_space = _bounded(self.observation_space, self.observation_type)
+            self.observation_space = bounded_space(self.observation_space, self.observation_type)
 
     @property
     def sim_config(self) -> SimConfig:
-        return SimConfig.from_mapping(_sim_settings(self.config))
+        return SimConfig.from_mapping(sim_settings(self.config))
 
     # ------------------------------------------------------------------ episode
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict]:
@@ -367,7 +292,7 @@ class CounterSceneEnv(AbstractEnv):
         observation. The PettingZoo env steps through this."""
         types = self.action_type.agents_action_types
         for k, action in actions.items():
-            types[k].act(_as_action(action))
+            types[k].act(as_highway_action(action))
         self.time += 1 / self.config["policy_frequency"]
         self._simulate(None)
         return self.observation_type.observe()
@@ -375,7 +300,7 @@ class CounterSceneEnv(AbstractEnv):
     def _simulate(self, action: Any = None) -> None:
         """``simulation_frequency / policy_frequency`` closed-loop steps with one action."""
         if action is not None and not self.config["manual_control"]:
-            self.action_type.act(_as_action(action))
+            self.action_type.act(as_highway_action(action))
         frames = self.config["simulation_frequency"] // self.config["policy_frequency"]
         self._frames = []
         dt = 1 / self.config["simulation_frequency"]
@@ -531,76 +456,6 @@ class CounterSceneEnv(AbstractEnv):
         if self.render_mode == "rgb_array":
             return self.viewer.get_image()
         return None
-
-
-def _sim_settings(config: Mapping) -> dict:
-    return {key: config[key] for key in SIM_KEYS}
-
-
-def check_action(space: spaces.Space, action: Any, who: str = "action") -> None:
-    """Raise ValueError on an action that does not fit ``space``: a wrong shape, NaN or inf,
-    a value outside a discrete space (out-of-range Box values are clipped by highway-env)."""
-    if isinstance(space, spaces.Tuple):
-        if not isinstance(action, tuple | list) or len(action) != len(space.spaces):
-            raise ValueError(f"{who} must be a tuple of {len(space.spaces)} actions")
-        for k, (sub, a) in enumerate(zip(space.spaces, action, strict=True)):
-            check_action(sub, a, f"{who}[{k}]")
-    elif isinstance(space, spaces.Box):
-        a = np.asarray(action, dtype=np.float64)
-        if a.shape != space.shape:
-            raise ValueError(f"{who} must have shape {space.shape}, got {a.shape}")
-        if not np.isfinite(a).all():
-            raise ValueError(f"{who} contains NaN or inf: {a.tolist()}")
-    else:
-        try:
-            value = np.asarray(action).item() if np.ndim(action) == 0 else action
-            ok = space.contains(value)
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            raise ValueError(f"{who} {action!r} is not in the action space {space}")
-
-
-#: Kinematics features in [-1, 1] by construction.
-_UNIT_FEATURES = {"presence", "cos_h", "sin_h", "cos_d", "sin_d"}
-#: Kinematics features that need no lane of the observed vehicles.
-_LANE_FREE_FEATURES = {
-    "presence",
-    "x",
-    "y",
-    "vx",
-    "vy",
-    "heading",
-    "cos_h",
-    "sin_h",
-    "cos_d",
-    "sin_d",
-}
-
-
-def _bounded(space: spaces.Space, obs_type: Any) -> spaces.Space:
-    """[-1, 1] when every Kinematics feature is there: by construction, or normalised and
-    clipped (highway-env scales only the features of ``features_range``; without one, its
-    defaults cover x, y, vx, vy)."""
-    if not (isinstance(obs_type, KinematicObservation) and isinstance(space, spaces.Box)):
-        return space
-    scaled = set(obs_type.features_range or ("x", "y", "vx", "vy"))
-    unit = _UNIT_FEATURES | (scaled if obs_type.normalize and obs_type.clip else set())
-    if set(obs_type.features) <= unit:
-        return spaces.Box(-1.0, 1.0, space.shape, space.dtype)
-    return space
-
-
-def _as_action(action: Any) -> Any:
-    """highway-env's action types index dicts with ints, use arrays for boxes and tuples for
-    several egos."""
-    if isinstance(action, tuple):
-        return tuple(_as_action(a) for a in action)
-    if isinstance(action, np.ndarray) and action.ndim == 0:
-        return int(action)
-    if isinstance(action, np.integer):
-        return int(action)
-    return action
 
 
 def pick_egos(scene: Scene, n: int) -> list[int]:

@@ -46,7 +46,7 @@ from highway_env.road.lane import LineType, StraightLane
 from highway_env.vehicle.behavior import IDMVehicle
 
 from counterscene_env.config import Scenario
-from counterscene_env.geometry import overlaps_over_time
+from counterscene_env.geometry import overlaps_over_time, wrap_angle
 from counterscene_env.scene.core import DEFAULT_DT, Scene
 from counterscene_env.scene.road import RoadMap
 
@@ -375,7 +375,7 @@ class _Recorder:
         road = RoadMap.from_network(network, bounds=(lo[0], lo[1], hi[0], hi[1]))
         return Scene(
             positions=pos,
-            yaws=_wrap(state[..., 2]),
+            yaws=wrap_angle(state[..., 2]),
             speeds=state[..., 3],
             extents=np.array([[v.LENGTH, v.WIDTH] for v in self.vehicles]),
             valid=valid,
@@ -407,7 +407,3 @@ def _platoon_middle(scene: Scene) -> int:
         return scene.ego_index
     median_x = np.median(scene.positions[scene.valid[:, t], t, 0])
     return int(always[np.argmin(np.abs(scene.positions[always, t, 0] - median_x))])
-
-
-def _wrap(angle: np.ndarray) -> np.ndarray:
-    return (angle + np.pi) % (2 * np.pi) - np.pi

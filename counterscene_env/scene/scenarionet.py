@@ -70,6 +70,7 @@ from typing import Any
 import numpy as np
 import shapely
 
+from counterscene_env.geometry import wrap_angle
 from counterscene_env.scene.core import DEFAULT_DT, Scene, SceneError
 from counterscene_env.scene.road import RoadMap
 
@@ -430,7 +431,7 @@ def _read_state(state: Mapping[str, Any], where: str) -> dict[str, np.ndarray]:
         if not np.isfinite(arr[valid]).all():
             raise ScenarioNetError(f"{where}.{name}: non-finite values at valid steps")
     heading = np.where(valid, flat["heading"], 0.0)
-    heading = (heading + np.pi) % (2 * np.pi) - np.pi
+    heading = wrap_angle(heading)
     return {
         "position": np.where(valid[:, None], pos2, 0.0),
         "heading": heading,

@@ -22,6 +22,8 @@ import math
 
 import numpy as np
 
+from counterscene_env.geometry import wrap_angle
+
 #: How far inside its lane's edge a corrected centre is placed [m].
 EDGE_MARGIN = 0.3
 #: A lane is "going the agent's way" if its direction is within this of the agent's course [rad].
@@ -67,7 +69,7 @@ def keep_on_lane(
     foot = start + u[:, None] * seg
     offset = point - foot
     dist = np.linalg.norm(offset, axis=-1)
-    gap = np.abs((direction - course + math.pi) % (2 * math.pi) - math.pi)
+    gap = np.abs(wrap_angle(direction - course))
     dist = np.where(gap <= MAX_HEADING_GAP, dist, np.inf)
     q = int(np.argmin(dist))
     if not np.isfinite(dist[q]):

@@ -48,7 +48,7 @@ def point_at(points: np.ndarray, yaws: np.ndarray, arc: np.ndarray, s: float):
     seg = arc[j + 1] - arc[j]
     w = 0.0 if seg <= 1e-9 else float(np.clip((s - arc[j]) / seg, 0.0, 1.0))
     xy = points[j] + w * (points[j + 1] - points[j])
-    dyaw = (yaws[j + 1] - yaws[j] + math.pi) % (2 * math.pi) - math.pi
+    dyaw = geometry.wrap_angle(yaws[j + 1] - yaws[j])
     return xy, float(yaws[j] + w * dyaw)
 
 

@@ -1,0 +1,54 @@
+"""The ``counterscene`` command.
+
+Subcommands import what they need when they run, so ``counterscene --help`` is instant.
+
+- ``generate``: build a dataset directory of scenes (highway-env traffic or ScenarioNet logs).
+- ``inspect``: load scenes and report their size, timing and factual metrics.
+- ``train``: train a world model on dataset directories (resumable).
+- ``evaluate-model``: open-loop ADE/FDE/off-road of a world model vs constant velocity.
+- ``bench``: latency and FLOPs of a world model's sampling call.
+- ``bench-env``: steps per second of ``CounterScene-v0``.
+- ``stress``: stress-test an ego planner against guided world-model traffic (paper's table).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from counterscene_env.cli import data, model, run
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if not hasattr(args, "func"):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+        # Errors users can act on: one clear line, no traceback.
+        print(f"counterscene {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The ``counterscene`` argument parser with one subparser per command."""
+    from importlib.metadata import version
+
+    __version__ = version("counterscene-env")
+    parser = argparse.ArgumentParser(
+        prog="counterscene",
+        description="CounterScene: adversarial multi-agent driving scenes and environments.",
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    data.add_generate(sub)
+    data.add_inspect(sub)
+    model.add_train(sub)
+    model.add_evaluate_model(sub)
+    model.add_bench(sub)
+    run.add_bench_env(sub)
+    run.add_stress(sub)
+    return parser

@@ -1,0 +1,63 @@
+"""Helpers shared by the ``counterscene`` subcommands: common flags, model loading, output."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from counterscene_env.config import Scenario  # a light module: --help stays instant
+
+#: The highway-env roads ``generate`` and ``evaluate-model`` can record scenes on.
+SCENARIO_CHOICES = Scenario.values()
+
+
+def add_model_flag(p: argparse.ArgumentParser) -> None:
+    """Add ``--model DIR`` (a world-model checkpoint directory; default: the shipped one)."""
+    p.add_argument("--model", default="default", help="model directory (default: shipped)")
+
+
+def add_json_flag(p: argparse.ArgumentParser, help: str = "print one JSON object") -> None:
+    """Add ``--json`` (print the result as one JSON object instead of a table)."""
+    p.add_argument("--json", action="store_true", help=help)
+
+
+def add_quiet_flag(p: argparse.ArgumentParser) -> None:
+    """Add ``--quiet`` (no progress bar)."""
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def add_seed_flag(p: argparse.ArgumentParser, default: int, help: str) -> None:
+    """Add ``--seed N`` (an int) with the given default and help text."""
+    p.add_argument("--seed", type=int, default=default, help=help)
+
+
+def parse_overrides(items: list[str]) -> dict:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def load_model(name: str):
+    from counterscene_env.world_model.checkpoint import CheckpointError, load_model
+
+    try:
+        return load_model(name)
+    except CheckpointError as exc:
+        raise ValueError(str(exc)) from None
+
+
+def fmt(v) -> str:
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+def json_safe(obj):
+    from counterscene_env.metrics import json_safe as safe  # lazy: keeps --help instant
+
+    return safe(obj)

@@ -1,0 +1,75 @@
+"""Action checks and observation bounds of the envs, on top of highway-env's types."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from highway_env.envs.common.observation import KinematicObservation
+
+
+def check_action(space: spaces.Space, action: Any, who: str = "action") -> None:
+    """Raise ValueError on an action that does not fit ``space``: a wrong shape, NaN or inf,
+    a value outside a discrete space (out-of-range Box values are clipped by highway-env)."""
+    if isinstance(space, spaces.Tuple):
+        if not isinstance(action, tuple | list) or len(action) != len(space.spaces):
+            raise ValueError(f"{who} must be a tuple of {len(space.spaces)} actions")
+        for k, (sub, a) in enumerate(zip(space.spaces, action, strict=True)):
+            check_action(sub, a, f"{who}[{k}]")
+    elif isinstance(space, spaces.Box):
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != space.shape:
+            raise ValueError(f"{who} must have shape {space.shape}, got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"{who} contains NaN or inf: {a.tolist()}")
+    else:
+        try:
+            value = np.asarray(action).item() if np.ndim(action) == 0 else action
+            ok = space.contains(value)
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(f"{who} {action!r} is not in the action space {space}")
+
+
+#: Kinematics features in [-1, 1] by construction.
+UNIT_FEATURES = {"presence", "cos_h", "sin_h", "cos_d", "sin_d"}
+#: Kinematics features that need no lane of the observed vehicles.
+LANE_FREE_FEATURES = {
+    "presence",
+    "x",
+    "y",
+    "vx",
+    "vy",
+    "heading",
+    "cos_h",
+    "sin_h",
+    "cos_d",
+    "sin_d",
+}
+
+
+def bounded_space(space: spaces.Space, obs_type: Any) -> spaces.Space:
+    """[-1, 1] when every Kinematics feature is there: by construction, or normalised and
+    clipped (highway-env scales only the features of ``features_range``; without one, its
+    defaults cover x, y, vx, vy)."""
+    if not (isinstance(obs_type, KinematicObservation) and isinstance(space, spaces.Box)):
+        return space
+    scaled = set(obs_type.features_range or ("x", "y", "vx", "vy"))
+    unit = UNIT_FEATURES | (scaled if obs_type.normalize and obs_type.clip else set())
+    if set(obs_type.features) <= unit:
+        return spaces.Box(-1.0, 1.0, space.shape, space.dtype)
+    return space
+
+
+def as_highway_action(action: Any) -> Any:
+    """highway-env's action types index dicts with ints, use arrays for boxes and tuples for
+    several egos."""
+    if isinstance(action, tuple):
+        return tuple(as_highway_action(a) for a in action)
+    if isinstance(action, np.ndarray) and action.ndim == 0:
+        return int(action)
+    if isinstance(action, np.integer):
+        return int(action)
+    return action
