@@ -10,6 +10,12 @@ module holds what they share, so that each setting has one source of truth:
   either the enum member or its string (``Selector.TTC`` or ``"ttc"``) and stores the string,
   so configs stay plain JSON. :meth:`Choice.parse` is the one checker; its error lists the
   valid values.
+- **Values** are checked by type and range where they enter, by one set of checkers
+  (:func:`check_bool`, :func:`check_int`, :func:`check_real`): a bool is a bool (not the
+  string ``"False"``), a count an int (not ``2.5`` or ``True``), a number finite. A dataclass
+  declares its ranges in field metadata (:func:`bounded`) and :func:`check_fields` checks
+  every field by its annotation. Refusals are ``TypeError`` (wrong type) or ``ValueError``
+  (wrong value) naming the key, the value and what is allowed.
 - :func:`from_mapping` builds a dataclass from a dict; an unknown key names the valid ones.
 - :func:`field_docs` reads a dataclass's ``Attributes:`` docstring section, and
   :func:`add_arguments` / :func:`parsed_fields` turn its fields into ``argparse`` flags: a
@@ -26,6 +32,8 @@ import argparse
 import dataclasses
 import enum
 import inspect
+import math
+import numbers
 import re
 import typing
 from collections.abc import Mapping, Sequence
@@ -154,6 +162,96 @@ def check_choices(obj: Any) -> None:
         if choices is None or (value is None and f.default is None):
             continue
         object.__setattr__(obj, f.name, choices.parse(value, f.name))
+
+
+def describe_value(value: Any) -> str:
+    return f"got {value!r} ({type(value).__name__})"
+
+
+def check_bool(key: str, value: Any) -> bool:
+    """``value`` if it is a bool (numpy's too); a string such as ``"False"`` is refused."""
+    if not isinstance(value, bool | np_bool()):
+        raise TypeError(f"{key} must be true or false (a bool), {describe_value(value)}")
+    return bool(value)
+
+
+def check_int(key: str, value: Any, ge: int | None = None, le: int | None = None) -> int:
+    """``value`` as an int if it is an integer (not a bool, not ``2.0``) within [ge, le]."""
+    if isinstance(value, bool | np_bool()) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"{key} must be an int, {describe_value(value)}")
+    _check_range(key, value, None, ge, le)
+    return int(value)
+
+
+def check_real(
+    key: str,
+    value: Any,
+    gt: float | None = None,
+    ge: float | None = None,
+    le: float | None = None,
+) -> float:
+    """``value`` as a float if it is a finite real number (not a bool, not a string) in
+    range."""
+    if isinstance(value, bool | np_bool()) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{key} must be a number, {describe_value(value)}")
+    if not math.isfinite(value):
+        raise ValueError(f"{key} must be a finite number, got {value!r}")
+    _check_range(key, value, gt, ge, le)
+    return float(value)
+
+
+def _check_range(key: str, value: Any, gt: Any, ge: Any, le: Any) -> None:
+    for bound, ok, sign in ((gt, lambda b: value > b, ">"), (ge, lambda b: value >= b, ">=")):
+        if bound is not None and not ok(bound):
+            raise ValueError(f"{key} must be {sign} {bound}, got {value!r}")
+    if le is not None and not value <= le:
+        raise ValueError(f"{key} must be <= {le}, got {value!r}")
+
+
+def np_bool() -> type:
+    """numpy's bool type, without importing numpy at this module's import."""
+    import numpy as np
+
+    return np.bool_
+
+
+def bounded(default: Any, **bounds: float) -> Any:
+    """A dataclass field with a range for :func:`check_fields` (``gt``, ``ge``, ``le``)."""
+    return dataclasses.field(default=default, metadata=bounds)
+
+
+def check_fields(obj: Any) -> None:
+    """Check every field of dataclass ``obj`` by its annotation (``bool``, ``int``, ``float``,
+    a :class:`Choice`, each optionally ``| None``) and its :func:`bounded` range; choices are
+    stored as their plain strings.
+
+    Raises:
+        TypeError: a value of the wrong type; ValueError: one out of range or not a choice.
+    """
+    hints = _hints(type(obj))
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        kind = _flag_type(hints[f.name])
+        if value is None and kind is not hints[f.name]:  # ``X | None``
+            continue
+        bounds = {k: v for k, v in f.metadata.items() if k in ("gt", "ge", "le")}
+        if f.metadata.get("choices") is not None:
+            object.__setattr__(obj, f.name, f.metadata["choices"].parse(value, f.name))
+        elif kind is bool:
+            check_bool(f.name, value)
+        elif kind is int:
+            check_int(f.name, value, **bounds)
+        elif kind is float:
+            check_real(f.name, value, **bounds)
+
+
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    if cls not in _HINTS:
+        _HINTS[cls] = typing.get_type_hints(cls)
+    return _HINTS[cls]
 
 
 def from_mapping(cls: type[T], values: Mapping, what: str) -> T:

@@ -27,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+    except (ValueError, TypeError, FileNotFoundError, RuntimeError) as exc:
         # Errors users can act on: one clear line, no traceback.
         print(f"counterscene {args.command}: error: {exc}", file=sys.stderr)
         return 1

@@ -8,11 +8,10 @@ default (:data:`SIM_KEYS`; one source, docs/design.md, "Configuration").
 
 from __future__ import annotations
 
-import numbers
 from collections.abc import Mapping
 from typing import Any
 
-from counterscene_env.config import defaults
+from counterscene_env.config import check_bool, check_int, check_real, defaults, describe_value
 from counterscene_env.sim.config import SimConfig
 
 #: Keys of highway-env's base config that mean nothing here (the traffic is the world model).
@@ -69,30 +68,66 @@ def sim_settings(config: Mapping[str, Any]) -> dict[str, Any]:
     return {key: config[key] for key in SIM_KEYS}
 
 
-def validate(config: Mapping[str, Any]) -> None:
-    """Check a complete env config (every key present) beyond its keys: frequencies,
-    frame size, egos and their observation / action types, rewards, closed-loop settings.
+#: highway-env's observation and action types (``observation_factory``, ``action_factory``).
+OBSERVATION_TYPES = (
+    "Kinematics",
+    "OccupancyGrid",
+    "TimeToCollision",
+    "KinematicsGoal",
+    "GrayscaleObservation",
+    "AttributesObservation",
+    "MultiAgentObservation",
+    "TupleObservation",
+    "LidarObservation",
+    "ExitObservation",
+)
+ACTION_TYPES = ("ContinuousAction", "DiscreteAction", "DiscreteMetaAction", "MultiAgentAction")
+#: Features a ``Kinematics`` observation can read (highway-env's ``Vehicle.to_dict``).
+KINEMATIC_FEATURES = (
+    "presence",
+    "x",
+    "y",
+    "vx",
+    "vy",
+    "heading",
+    "cos_h",
+    "sin_h",
+    "cos_d",
+    "sin_d",
+    "long_off",
+    "lat_off",
+    "ang_off",
+)
+_BOOL_KEYS = (
+    "terminate_on_collision",
+    "terminate_on_off_road",
+    "show_adversary_plan",
+    "show_trajectories",
+    "render_agent",
+    "offscreen_rendering",
+    "manual_control",
+    "real_time_rendering",
+    "neighbour_vehicles_connected_lanes",
+)
+_REWARD_KEYS = ("collision_reward", "off_road_reward", "hard_braking_reward", "high_speed_reward")
+#: The scenes' step: the env simulates at exactly this frequency [Hz].
+SIMULATION_FREQUENCY = 10
+
+
+def validate(config: Mapping[str, Any], env: Any = None) -> None:
+    """Check a complete env config (every key present) by type and range, before anything is
+    applied: frequencies, frame size, rewards, flags, the egos and their observation and
+    action types (built on a scratch object when ``env`` is given), the closed-loop settings.
 
     Raises:
-        ValueError: the first problem found, naming the key.
+        TypeError: a value of the wrong type; ValueError: a wrong value. The message names the
+            key, the value and what is allowed.
     """
-    sim = 10
-    if config["simulation_frequency"] != sim:
-        raise ValueError(
-            f"simulation_frequency must be {sim} Hz (the scenes' 0.1 s step), "
-            f"got {config['simulation_frequency']}"
-        )
-    pf = config["policy_frequency"]
-    if not isinstance(pf, numbers.Integral) or pf < 1 or sim % pf:
-        raise ValueError(f"policy_frequency must divide {sim} Hz (1, 2, 5, 10), got {pf!r}")
-    for key in ("screen_width", "screen_height"):
-        if config[key] % 16:
-            raise ValueError(f"{key} must be a multiple of 16 px (video codecs), got {config[key]}")
-    n = config["controlled_vehicles"]
-    if not isinstance(n, numbers.Integral) or n < 1:
-        raise ValueError(f"controlled_vehicles must be an int >= 1, got {n!r}")
-    obs, act = config["observation"], config["action"]
-    multi = (obs.get("type") == "MultiAgentObservation", act.get("type") == "MultiAgentAction")
+    _check_scalars(config)
+    n = check_int("controlled_vehicles", config["controlled_vehicles"], ge=1)
+    obs = _check_type_dict("observation", config["observation"], OBSERVATION_TYPES)
+    act = _check_type_dict("action", config["action"], ACTION_TYPES)
+    multi = (obs["type"] == "MultiAgentObservation", act["type"] == "MultiAgentAction")
     if n > 1 and not all(multi):
         raise ValueError(
             f"controlled_vehicles = {n} needs highway-env's multi-agent types: observation "
@@ -100,14 +135,106 @@ def validate(config: Mapping[str, Any]) -> None:
             "{'type': 'MultiAgentAction', 'action_config': {...}} (or use "
             "counterscene_env.parallel_env)"
         )
-    obs = obs.get("observation_config", obs)
-    act = act.get("action_config", act)
-    if obs.get("type") == "TimeToCollision" and act.get("type") != "DiscreteMetaAction":
+    if multi[0]:
+        obs = _check_type_dict(
+            "observation.observation_config", obs.get("observation_config"), OBSERVATION_TYPES
+        )
+    if multi[1]:
+        act = _check_type_dict("action.action_config", act.get("action_config"), ACTION_TYPES)
+    _check_observation(obs)
+    if obs["type"] == "TimeToCollision" and act["type"] != "DiscreteMetaAction":
         raise ValueError(
             "the TimeToCollision observation needs the DiscreteMetaAction action type "
             "(its grid is over the ego's target speeds)"
         )
-    lo, hi = config["reward_speed_range"]
+    if env is not None:
+        _build_on_scratch(env, config)
+    SimConfig.from_mapping(sim_settings(config))  # types, ranges and choices (raises)
+
+
+def _check_scalars(config: Mapping[str, Any]) -> None:
+    """The flat keys: frequencies, frame, rewards, flags, model."""
+    sim = check_int("simulation_frequency", config["simulation_frequency"])
+    if sim != SIMULATION_FREQUENCY:
+        raise ValueError(
+            f"simulation_frequency must be {SIMULATION_FREQUENCY} Hz (the scenes' 0.1 s "
+            f"step), got {sim}"
+        )
+    pf = check_int("policy_frequency", config["policy_frequency"], ge=1)
+    if sim % pf:
+        raise ValueError(f"policy_frequency must divide {sim} Hz (1, 2, 5, 10), got {pf!r}")
+    for key in ("screen_width", "screen_height"):
+        size = check_int(key, config[key], ge=16)
+        if size % 16:
+            raise ValueError(f"{key} must be a multiple of 16 px (video codecs), got {size}")
+    check_real("scaling", config["scaling"], gt=0)
+    _check_pair("centering_position", config["centering_position"])
+    for key in _REWARD_KEYS:
+        check_real(key, config[key])
+    lo, hi = _check_pair("reward_speed_range", config["reward_speed_range"])
     if not hi > lo:
         raise ValueError(f"reward_speed_range must be [low, high] m/s, got {[lo, hi]}")
-    SimConfig.from_mapping(sim_settings(config))  # selector, guidance, ... (raises)
+    for key in _BOOL_KEYS:
+        if not (key == "offscreen_rendering" and config[key] is None):  # None: by render mode
+            check_bool(key, config[key])
+    if not isinstance(config["model"], str) or not config["model"]:
+        raise TypeError(f"model must be 'default' or a model directory, got {config['model']!r}")
+
+
+def _check_pair(key: str, value: Any) -> tuple[float, float]:
+    if not isinstance(value, list | tuple) or len(value) != 2:
+        raise ValueError(f"{key} must be a list of two numbers, got {value!r}")
+    return check_real(f"{key}[0]", value[0]), check_real(f"{key}[1]", value[1])
+
+
+def _check_type_dict(key: str, value: Any, types: tuple[str, ...]) -> Mapping[str, Any]:
+    """A highway-env type config: a dict whose ``type`` is one of ``types``."""
+    if not isinstance(value, Mapping):
+        raise TypeError(
+            f"{key} must be a dict with a 'type' (one of {list(types)}), {describe_value(value)}"
+        )
+    if value.get("type") not in types:
+        raise ValueError(
+            f"{key} needs a 'type', one of {list(types)}; got {value.get('type')!r} in {value!r}"
+        )
+    return value
+
+
+def _check_observation(obs: Mapping[str, Any]) -> None:
+    """Counts and features of an observation config (highway-env accepts an empty feature
+    list or a count of 0, and fails later or returns observations outside the space)."""
+    for key in ("vehicles_count", "cells", "horizon"):
+        if key in obs:
+            check_int(f"observation.{key}", obs[key], ge=1)
+    if obs["type"] in ("Kinematics", "KinematicsGoal") and "features" in obs:
+        features = obs["features"]
+        if not isinstance(features, list | tuple) or not features:
+            raise ValueError(
+                f"observation.features must be a non-empty list of {list(KINEMATIC_FEATURES)}, "
+                f"got {features!r}"
+            )
+        unknown = [f for f in features if f not in KINEMATIC_FEATURES]
+        if unknown:
+            raise ValueError(
+                f"observation.features has unknown names {unknown}; valid: "
+                f"{list(KINEMATIC_FEATURES)}"
+            )
+
+
+def _build_on_scratch(env: Any, config: Mapping[str, Any]) -> None:
+    """Build the observation and action types and their spaces without keeping them: a config
+    highway-env cannot build is refused before it is applied. (Keys a type does not know are
+    ignored, as highway-env does: its own env configs carry some, e.g. ``flatten``.)"""
+    from highway_env.envs.common.action import action_factory
+    from highway_env.envs.common.observation import observation_factory
+
+    for key, factory in (("observation", observation_factory), ("action", action_factory)):
+        # The multi-agent types hold one config per ego: build that one.
+        name, part = key, config[key]
+        if f"{key}_config" in part:
+            name, part = f"{key}.{key}_config", part[f"{key}_config"]
+        try:
+            built = factory(env, dict(part))
+            built.space()
+        except Exception as exc:  # highway-env's own message, with the key
+            raise ValueError(f"{name} {part!r} cannot be built: {exc}") from None

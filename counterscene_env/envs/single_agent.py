@@ -11,6 +11,7 @@ docstring of :class:`CounterSceneEnv` and ``docs/environment.md``.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -25,6 +26,7 @@ from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from counterscene_env import metrics
+from counterscene_env.config import check_int
 from counterscene_env.envs.config import (
     UNUSED_BASE_KEYS,
     counterscene_defaults,
@@ -34,6 +36,7 @@ from counterscene_env.envs.config import (
 from counterscene_env.envs.render import CounterSceneViewer, EpisodeView
 from counterscene_env.envs.spaces import (
     LANE_FREE_FEATURES,
+    RowCappedKinematics,
     as_highway_action,
     bounded_space,
     check_action,
@@ -41,6 +44,7 @@ from counterscene_env.envs.spaces import (
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import SceneSource
 from counterscene_env.sim import ClosedLoop, SimConfig
+from counterscene_env.sim.memory import check_replan_memory
 
 _MODELS: dict[str, Any] = {}
 
@@ -130,6 +134,7 @@ class CounterSceneEnv(AbstractEnv):
         self._ended: list[bool] = []
         self._source: SceneSource | None = None
         self._reset_options: dict = {}
+        self._failure: str | None = None  # why the env needs reset() (an unexpected failure)
         super().__init__(config, render_mode)
 
     def update_metadata(self, video_real_time_ratio: int = 1) -> None:
@@ -152,25 +157,45 @@ class CounterSceneEnv(AbstractEnv):
         return config
 
     def configure(self, config: Mapping | None) -> None:
-        """Update the config; an unknown key raises and names the valid ones."""
-        if config:
-            valid = set(self.default_config())
-            unknown = sorted(set(config) - valid)
-            if unknown:
-                raise ValueError(
-                    f"unknown CounterScene config keys {unknown}; valid keys: {sorted(valid)}"
-                )
-        candidate = dict(self.config)
-        candidate.update(config or {})
-        validate(candidate)
-        source = SceneSource(candidate["scenario"])  # raises on an unknown scenario
-        super().configure(dict(config or {}))  # nothing changes before every check passed
+        """Update the config. Every value is checked first (type and range, the observation
+        and action types built on a scratch object, the replan's memory): a refused call
+        raises ``TypeError`` or ``ValueError`` naming the key and changes nothing."""
+        candidate, source = self._prepare(config)
+        super().configure(candidate)
         self._source = source
+
+    def _prepare(self, config: Mapping | None) -> tuple[dict, SceneSource]:
+        """The checked config that ``config``'s updates would give, and its scene source."""
+        if config is None:
+            config = {}
+        if not isinstance(config, Mapping):
+            raise TypeError(f"config must be a dict of config keys, got {config!r}")
+        valid = set(self.default_config())
+        unknown = sorted(set(config) - valid, key=str)
+        if unknown:
+            raise ValueError(
+                f"unknown CounterScene config keys {unknown}; valid keys: {sorted(valid)}"
+            )
+        # A copy: later changes to the caller's (nested) dicts do not reach the env.
+        candidate = {**self.config, **copy.deepcopy(dict(config))}
+        validate(candidate, self)
+        source = SceneSource(candidate["scenario"])  # raises on an unknown scenario
+        model = load_world_model(candidate["model"])
+        sim = SimConfig.from_mapping(sim_settings(candidate))
+        windows = max(sim.max_windows, candidate["controlled_vehicles"])
+        check_replan_memory(model.config, sim.num_samples, windows, sim.memory_limit_gb)
+        return candidate, source
 
     def define_spaces(self) -> None:
         """highway-env's spaces, with the ``Kinematics`` box bounded to [-1, 1] when every
-        feature is normalised and clipped there (highway-env declares (-inf, inf))."""
+        feature is normalised and clipped there (highway-env declares (-inf, inf)), and its
+        observations kept to ``vehicles_count`` rows (:class:`RowCappedKinematics`)."""
         super().define_spaces()
+        for t in getattr(
+            self.observation_type, "agents_observation_types", [self.observation_type]
+        ):
+            if type(t) is KinematicObservation:
+                t.__class__ = RowCappedKinematics
         obs = self.config["observation"]
         obs = obs.get("observation_config", obs)
         self._needs_lanes = not (
@@ -203,25 +228,26 @@ class CounterSceneEnv(AbstractEnv):
         ``"scene"``: a :class:`Scene` to run instead of drawing one; ``"episode_seed"``: the
         closed loop's seed (world-model noise, adversary tie-breaks) instead of one drawn from
         the env's generator; ``counterscene stress`` passes its episode seeds so every planner
-        meets the same traffic randomness. A refused reset leaves the config as it was.
+        meets the same traffic randomness. Other keys are ignored (PettingZoo's API test sends
+        some). Bad input is refused before anything changes.
         """
-        options = dict(options or {})  # other keys are ignored (PettingZoo's API test sends some)
+        options = dict(options or {})
+        if seed is not None:
+            check_int("seed", seed, ge=0)
+        if options.get("episode_seed") is not None:
+            check_int("options['episode_seed']", options["episode_seed"], ge=0)
         scene = options.get("scene")
         if scene is not None and not isinstance(scene, Scene):
             raise TypeError(f"options['scene'] must be a Scene, got {type(scene).__name__}")
-        saved = dict(self.config), self._source
+        candidate, source = self._prepare(options.pop("config", None))
+        if scene is not None:
+            pick_egos(scene, candidate["controlled_vehicles"])  # raises before any change
+        super().configure(candidate)
+        self._source, self._reset_options, self._failure = source, options, None
         try:
-            if "config" in options:
-                self.configure(options.pop("config"))
-            if scene is not None:
-                pick_egos(scene, self.config["controlled_vehicles"])  # raises before any change
-            self._reset_options = options
             return super().reset(seed=seed, options=options)
-        except Exception:
-            # A refused reset leaves the config as it was; the old episode cannot go on.
-            self.config, self._source = saved
-            self.define_spaces()
-            self.loop = None
+        except Exception as exc:
+            self._fail("reset", exc)
             raise
 
     def _reset(self) -> None:
@@ -277,25 +303,47 @@ class CounterSceneEnv(AbstractEnv):
         self._sync_road()
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
-        if self.loop is None:
-            raise RuntimeError("call reset() before step()")
-        if self.loop.done.all() or any(self._ended):
-            raise RuntimeError("the episode is over (terminated or truncated): call reset()")
+        """highway-env's step, after the action is checked: a refused action (wrong type,
+        shape, NaN, not in a discrete space) raises and changes nothing."""
+        self._check_running()
         if isinstance(self.action_space, spaces.Tuple) and isinstance(action, list):
             action = tuple(action)  # one action per ego, as highway-env's MultiAgentAction
         check_action(self.action_space, action)
-        return super().step(action)
+        try:
+            return super().step(action)
+        except Exception as exc:
+            self._fail("step", exc)
 
     def step_egos(self, actions: Mapping[int, Any]) -> Any:
         """One policy step with an action per ego (ego index -> action, already checked);
         egos without one (those done) keep their last controls. Returns every ego's
         observation. The PettingZoo env steps through this."""
-        types = self.action_type.agents_action_types
-        for k, action in actions.items():
-            types[k].act(as_highway_action(action))
-        self.time += 1 / self.config["policy_frequency"]
-        self._simulate(None)
-        return self.observation_type.observe()
+        self._check_running(every_ego=False)
+        try:
+            types = self.action_type.agents_action_types
+            for k, action in actions.items():
+                types[k].act(as_highway_action(action))
+            self.time += 1 / self.config["policy_frequency"]
+            self._simulate(None)
+            return self.observation_type.observe()
+        except Exception as exc:
+            self._fail("step", exc)
+
+    def _check_running(self, every_ego: bool = True) -> None:
+        """Raise unless a step can run (``every_ego``: and no ego's episode has ended)."""
+        if self._failure is not None:
+            raise RuntimeError(f"{self._failure}: the episode cannot go on, call reset()")
+        if self.loop is None:
+            raise RuntimeError("call reset() before step()")
+        if self.loop.done.all() or (every_ego and any(self._ended)):
+            raise RuntimeError("the episode is over (terminated or truncated): call reset()")
+
+    def _fail(self, call: str, exc: Exception) -> None:
+        """An unexpected failure inside ``call`` (a bug, not bad input, which is refused
+        before anything changes): the env is marked as needing ``reset()``."""
+        self._failure = f"the last {call}() failed ({type(exc).__name__}: {exc})"
+        if call == "step":
+            raise RuntimeError(f"{self._failure}: the episode cannot go on, call reset()") from exc
 
     def _simulate(self, action: Any = None) -> None:
         """``simulation_frequency / policy_frequency`` closed-loop steps with one action."""

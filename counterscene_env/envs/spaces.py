@@ -10,15 +10,21 @@ from highway_env.envs.common.observation import KinematicObservation
 
 
 def check_action(space: spaces.Space, action: Any, who: str = "action") -> None:
-    """Raise ValueError on an action that does not fit ``space``: a wrong shape, NaN or inf,
-    a value outside a discrete space (out-of-range Box values are clipped by highway-env)."""
+    """Refuse an action that does not fit ``space``, before anything is applied: not numbers
+    (strings, None, an int too large for a float), a wrong shape, NaN or inf (ValueError), a
+    value outside a discrete space (ValueError). Out-of-range Box values are clipped by
+    highway-env.
+
+    Raises:
+        TypeError: not numbers; ValueError: the rest. The message names ``who``.
+    """
     if isinstance(space, spaces.Tuple):
         if not isinstance(action, tuple | list) or len(action) != len(space.spaces):
             raise ValueError(f"{who} must be a tuple of {len(space.spaces)} actions")
         for k, (sub, a) in enumerate(zip(space.spaces, action, strict=True)):
             check_action(sub, a, f"{who}[{k}]")
     elif isinstance(space, spaces.Box):
-        a = np.asarray(action, dtype=np.float64)
+        a = _numbers(action, who)
         if a.shape != space.shape:
             raise ValueError(f"{who} must have shape {space.shape}, got {a.shape}")
         if not np.isfinite(a).all():
@@ -31,6 +37,17 @@ def check_action(space: spaces.Space, action: Any, who: str = "action") -> None:
             ok = False
         if not ok:
             raise ValueError(f"{who} {action!r} is not in the action space {space}")
+
+
+def _numbers(action: Any, who: str) -> np.ndarray:
+    """``action`` as a numeric array, or TypeError (strings, None, objects, bools)."""
+    try:
+        a = np.asarray(action)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise TypeError(f"{who} must be numbers, got {action!r} ({exc})") from None
+    if a.dtype.kind not in "iuf":
+        raise TypeError(f"{who} must be numbers, got {action!r} ({a.dtype} values)")
+    return a.astype(np.float64)
 
 
 #: Kinematics features in [-1, 1] by construction.
@@ -73,3 +90,16 @@ def as_highway_action(action: Any) -> Any:
     if isinstance(action, np.integer):
         return int(action)
     return action
+
+
+class RowCappedKinematics(KinematicObservation):
+    """highway-env's ``Kinematics`` observation, never more than ``vehicles_count`` rows.
+
+    With ``vehicles_count = 1`` highway-env asks the road for the ``0`` nearest vehicles,
+    which it reads as "no limit", and returns every vehicle: an observation outside its
+    ``(1, F)`` space. Every other count already gives exactly ``vehicles_count`` rows.
+    """
+
+    def observe(self) -> np.ndarray:
+        obs = super().observe()
+        return obs[: self.vehicles_count] if obs.ndim == 2 else obs

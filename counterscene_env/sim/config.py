@@ -7,7 +7,6 @@ the docstring, and it is reachable from every front end.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -16,7 +15,8 @@ from counterscene_env.config import (
     Sampler,
     SelectionSource,
     Selector,
-    check_choices,
+    bounded,
+    check_fields,
     choice_field,
     from_mapping,
 )
@@ -57,35 +57,31 @@ class SimConfig:
         road_keeping: a step that would take an agent other than an ego off the road is moved
             sideways onto its lane (sim/road_keeping.py). False: the plans' own off-road
             steps stand.
+        memory_limit_gb: a replan whose estimated memory (sim/memory.py: samples x model
+            windows x the model's size) exceeds this is refused before it starts [GB] (None:
+            half of this machine's total memory, whatever is free).
     """
 
-    duration: float = 10.0
-    replan_every: int = 5
-    num_samples: int = 4
+    duration: float = bounded(10.0, gt=0)
+    replan_every: int = bounded(5, ge=1)
+    num_samples: int = bounded(4, ge=1)
     selector: str = choice_field(Selector, Selector.CAUSAL)
     selection_source: str = choice_field(SelectionSource, SelectionSource.LOG)
     strict_gates: bool = True
     guidance: str = choice_field(GuidancePreset, GuidancePreset.FULL)
     sampler: str | None = choice_field(Sampler, None)
-    sampling_steps: int | None = None
-    eta: float | None = None
-    map_guidance: float | None = None
-    realism_weight: float = 1.0
-    cover_radius: float = 25.0
-    max_windows: int = 1
+    sampling_steps: int | None = bounded(None, ge=1)
+    eta: float | None = bounded(None, ge=0)
+    map_guidance: float | None = bounded(None, ge=0)
+    realism_weight: float = bounded(1.0, ge=0)
+    cover_radius: float = bounded(25.0, gt=0)
+    max_windows: int = bounded(1, ge=1)
     traffic_yields: bool = True
     road_keeping: bool = True
+    memory_limit_gb: float | None = bounded(None, gt=0)
 
     def __post_init__(self) -> None:
-        if not self.duration > 0:
-            raise ValueError(f"duration must be > 0 s, got {self.duration}")
-        if self.replan_every < 1:
-            raise ValueError(f"replan_every must be >= 1 step, got {self.replan_every}")
-        if self.num_samples < 1:
-            raise ValueError(f"num_samples must be >= 1, got {self.num_samples}")
-        if not math.isfinite(self.realism_weight) or self.realism_weight < 0:
-            raise ValueError(f"realism_weight must be >= 0, got {self.realism_weight}")
-        check_choices(self)
+        check_fields(self)  # types, ranges and choices, each refusal naming its key
 
     @classmethod
     def from_mapping(cls, values: Mapping) -> SimConfig:

@@ -58,6 +58,7 @@ from counterscene_env.metrics import HARD_BRAKE_THRESHOLD
 from counterscene_env.scene.core import Scene
 from counterscene_env.sim import road_keeping
 from counterscene_env.sim.config import SimConfig
+from counterscene_env.sim.memory import check_replan_memory
 from counterscene_env.sim.motion import advance
 from counterscene_env.sim.replan import Replanner
 from counterscene_env.sim.state import Episode, WorldState
@@ -119,6 +120,9 @@ class ClosedLoop:
             egos = [[s.ego_index] for s in scenes]
         if len(egos) != len(scenes) or len({len(e) for e in egos}) != 1:
             raise ValueError("egos needs one list per scene, all of the same length")
+        c = self.config
+        windows = len(scenes) * max(c.max_windows, len(egos[0]))
+        check_replan_memory(self.model.config, c.num_samples, windows, c.memory_limit_gb)
         self.episodes = [
             self._start(s, int(seed), [int(r) for r in rows])
             for s, seed, rows in zip(scenes, seeds, egos, strict=True)

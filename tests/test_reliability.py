@@ -1,0 +1,196 @@
+"""Nothing breaks, nothing is lost: every bad config, reset or action is refused with a message
+that names the key, and a refused call leaves the env exactly as it was."""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import counterscene_env
+from counterscene_env.envs.single_agent import CounterSceneEnv
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+SHORT = {"duration": 1.0, "num_samples": 2}
+
+
+def snapshot(env) -> str:
+    """Everything a refused call must leave alone, as one digest: the config, the clock, the
+    generator's state, the episode records and the egos' vehicles."""
+    env = env.unwrapped
+    h = hashlib.sha256()
+    h.update(json.dumps(env.config, sort_keys=True, default=repr).encode())
+    h.update(repr((env.time, env.steps, env.np_random.bit_generator.state)).encode())
+    h.update(repr((env.observation_space, env.action_space)).encode())
+    if env.loop is not None:
+        for ep in env.loop.episodes:
+            for array in (ep.positions, ep.yaws, ep.speeds, ep.valid, ep.source, ep.plan_positions):
+                h.update(np.ascontiguousarray(array).tobytes())
+            h.update(repr((ep.t, ep.replans, len(ep.records))).encode())
+            h.update(repr(ep.rng.bit_generator.state).encode())
+            h.update(repr(ep.generator.get_state().tolist()).encode())
+    for v in env.controlled_vehicles or []:
+        h.update(repr((v.position.tolist(), v.heading, v.speed, v.crashed)).encode())
+    return h.hexdigest()
+
+
+@pytest.fixture(scope="module")
+def shard(generated, tmp_path_factory):
+    from counterscene_env.scene.shards import save_scenes
+
+    path = tmp_path_factory.mktemp("reliability") / "scenes.npz"
+    save_scenes([generated["merge"], generated["intersection"]], path)
+    return str(path)
+
+
+@pytest.fixture
+def env(shard):
+    env = gym.make("CounterScene-v0", config={"scenario": shard, **SHORT})
+    env.reset(seed=3)
+    env.step(np.zeros(2, np.float32))
+    yield env
+    env.close()
+
+
+OBS = CounterSceneEnv.default_config()["observation"]
+
+BAD_CONFIGS = [
+    # (config update, exception type, words the message must contain)
+    ({"strict_gates": "False"}, TypeError, ["strict_gates", "'False'", "bool"]),
+    ({"terminate_on_collision": "no"}, TypeError, ["terminate_on_collision", "bool"]),
+    ({"traffic_yields": None}, TypeError, ["traffic_yields", "None"]),
+    ({"replan_every": 2.5}, TypeError, ["replan_every", "2.5", "int"]),
+    ({"replan_every": True}, TypeError, ["replan_every", "True", "int"]),
+    ({"replan_every": 0}, ValueError, ["replan_every", ">= 1"]),
+    ({"collision_reward": math.nan}, ValueError, ["collision_reward", "nan", "finite"]),
+    ({"collision_reward": "x"}, TypeError, ["collision_reward", "'x'"]),
+    ({"num_samples": 1.5}, TypeError, ["num_samples", "1.5", "int"]),
+    ({"num_samples": 10**6}, ValueError, ["num_samples", "GB", "memory_limit_gb"]),
+    ({"duration": "5"}, TypeError, ["duration", "'5'"]),
+    ({"guidance": ["full"]}, ValueError, ["guidance", "['full']", "none"]),
+    ({"scenario": None}, ValueError, ["scenario", "None"]),
+    ({"observation": "Kinematics"}, TypeError, ["observation", "'Kinematics'", "dict"]),
+    ({"observation": {}}, ValueError, ["observation", "type"]),
+    ({"observation": {**OBS, "features": []}}, ValueError, ["features", "[]"]),
+    ({"observation": {**OBS, "features": ["bogus"]}}, ValueError, ["features", "'bogus'"]),
+    ({"observation": {**OBS, "vehicles_count": 0}}, ValueError, ["vehicles_count", "0", ">= 1"]),
+    ({"observation": {**OBS, "vehicles_count": -1}}, ValueError, ["vehicles_count", "-1"]),
+    ({"observation": {"type": "Telepathy"}}, ValueError, ["observation", "'Telepathy'"]),
+    ({"action": {"type": "Teleport"}}, ValueError, ["action", "'Teleport'"]),
+    ({"action": ["ContinuousAction"]}, TypeError, ["action", "dict"]),
+    ({"reward_speed_range": [5.0]}, ValueError, ["reward_speed_range"]),
+    ({"policy_frequency": 3}, ValueError, ["policy_frequency", "3"]),
+    ({"screen_width": 100}, ValueError, ["screen_width", "100"]),
+    ({"memory_limit_gb": -1.0}, ValueError, ["memory_limit_gb", "-1.0"]),
+]
+
+
+def _ids(case):
+    return json.dumps(case[0], default=repr)[:60]
+
+
+@pytest.mark.parametrize(("update", "kind", "words"), BAD_CONFIGS, ids=map(_ids, BAD_CONFIGS))
+def test_a_bad_config_is_refused_at_make_with_the_key_named(shard, update, kind, words):
+    with pytest.raises(kind) as info:
+        gym.make("CounterScene-v0", config={"scenario": shard, **SHORT, **update})
+    for word in words:
+        assert word in str(info.value), (word, str(info.value))
+
+
+@pytest.mark.parametrize(("update", "kind", "words"), BAD_CONFIGS, ids=map(_ids, BAD_CONFIGS))
+def test_a_refused_reset_or_configure_changes_nothing(env, update, kind, words):
+    before = snapshot(env)
+    with pytest.raises(kind):
+        env.reset(options={"config": update})
+    assert snapshot(env) == before
+    with pytest.raises(kind):
+        env.unwrapped.configure(update)
+    assert snapshot(env) == before
+    # ... and the episode goes on.
+    info = env.step(np.zeros(2, np.float32))[4]
+    assert info["step"] == 2
+
+
+BAD_ACTIONS = [
+    (["0.1", "0.2"], TypeError, "numbers"),
+    ([10**400, 0], TypeError, "numbers"),
+    ([math.nan, 0.0], ValueError, "NaN"),
+    ([0.0, math.inf], ValueError, "inf"),
+    ([0.0], ValueError, "shape"),
+    (None, TypeError, "numbers"),
+    ({"acceleration": 1}, TypeError, "numbers"),
+]
+
+
+@pytest.mark.parametrize(
+    ("action", "kind", "words"), BAD_ACTIONS, ids=[repr(a)[:20] for a, *_ in BAD_ACTIONS]
+)
+def test_a_refused_step_changes_nothing(env, action, kind, words):
+    before = snapshot(env)
+    with pytest.raises(kind, match=words):
+        env.step(action)
+    assert snapshot(env) == before
+    _, _, _, _, info = env.step(np.zeros(2, np.float32))
+    assert info["step"] == 2 and env.unwrapped.time == pytest.approx(0.2)
+    assert info["time"] == pytest.approx(0.2)
+
+
+def test_a_bad_scene_option_changes_nothing(env):
+    before = snapshot(env)
+    for options, kind in (
+        ({"scene": "merge"}, TypeError),
+        ({"episode_seed": "7"}, TypeError),
+        ({"episode_seed": -1}, ValueError),
+        ({"config": ["duration", 1.0]}, TypeError),
+    ):
+        with pytest.raises(kind):
+            env.reset(options=options)
+        assert snapshot(env) == before
+
+
+def test_a_failure_inside_a_step_asks_for_a_reset(env, monkeypatch):
+    """A bug (not bad input) mid-step: the env says it needs reset(), and reset() heals it."""
+    core = env.unwrapped
+
+    def broken(*args, **kwargs):
+        raise ZeroDivisionError("simulated bug")
+
+    monkeypatch.setattr(core.loop, "step", broken)
+    with pytest.raises(RuntimeError, match=r"simulated bug.*reset\(\)"):
+        env.step(np.zeros(2, np.float32))
+    monkeypatch.undo()
+    with pytest.raises(RuntimeError, match=r"reset\(\)"):
+        env.step(np.zeros(2, np.float32))
+    env.reset(seed=4)
+    env.step(np.zeros(2, np.float32))
+
+
+def test_parallel_env_refuses_bad_configs_and_actions_without_changes(shard):
+    env = counterscene_env.parallel_env(num_egos=2, config={"scenario": shard, **SHORT})
+    env.reset(seed=0)
+    before = snapshot(env.core)
+    with pytest.raises(TypeError, match="num_samples"):
+        env.reset(options={"config": {"num_samples": "4"}})
+    with pytest.raises(TypeError, match="numbers"):
+        env.step({"ego_0": ["a", "b"], "ego_1": [0.0, 0.0]})
+    assert snapshot(env.core) == before
+    for bad in ({"num_samples": -1}, {"observation": {"type": "Kinematics", "features": []}}):
+        with pytest.raises(ValueError):
+            counterscene_env.parallel_env(num_egos=2, config={"scenario": shard, **bad})
+    env.close()
+
+
+def test_kinematics_observation_stays_inside_its_space_with_one_vehicle(shard):
+    obs_config = {**copy.deepcopy(OBS), "vehicles_count": 1}
+    env = gym.make(
+        "CounterScene-v0", config={"scenario": shard, **SHORT, "observation": obs_config}
+    )
+    obs, _ = env.reset(seed=0)
+    assert env.observation_space.contains(obs)
+    env.close()
