@@ -17,11 +17,12 @@ min TTC, fallbacks and timing.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import math
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -81,22 +82,123 @@ class StressConfig:
         return out
 
 
+class EpisodeLog:
+    """A stress run's durable record: ``DIR/episodes.jsonl``, one line per finished episode.
+
+    Each batch's records are appended, flushed and synced to disk as the batch finishes, so a
+    killed run (Ctrl-C, a crash, a lost machine) loses only the episodes in flight. Rerunning
+    the same command resumes after the last recorded episode; a larger ``--episodes``
+    extends the run. ``DIR/run.json`` holds what the run is (the config but its episode
+    count, and the model): a rerun with anything else is refused, so one directory never
+    mixes two runs.
+
+    Args:
+        directory: the run's output directory (created).
+        identity: what the run is, as plain JSON values.
+
+    Raises:
+        ValueError: ``directory`` holds another run (the message names the differing keys).
+    """
+
+    def __init__(self, directory: str | os.PathLike, identity: dict) -> None:
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.path = self.dir / "episodes.jsonl"
+        run = self.dir / "run.json"
+        identity = json.loads(json.dumps(metrics.json_safe(identity)))
+        if run.is_file():
+            have = json.loads(run.read_text())
+            if have != identity:
+                keys = sorted(
+                    k for k in set(have) | set(identity) if have.get(k) != identity.get(k)
+                )
+                raise ValueError(
+                    f"{self.dir} holds a stress run with other settings ({', '.join(keys)}): "
+                    "use another --out, or delete it to start over"
+                )
+        else:
+            run.write_text(json.dumps(identity, indent=2) + "\n")
+        self.records = self._read()
+
+    def _read(self) -> list[dict]:
+        """The finished episodes on disk, in order; a last line cut short by a kill is
+        dropped (and removed from the file)."""
+        if not self.path.is_file():
+            return []
+        lines = self.path.read_text().splitlines()
+        records = []
+        for n, line in enumerate(lines):
+            try:
+                records.append(json.loads(line))
+            except json.JSONDecodeError:
+                if n != len(lines) - 1:
+                    raise ValueError(f"{self.path}: line {n + 1} is not JSON") from None
+                self.path.write_text("".join(f"{x}\n" for x in lines[:-1]))
+        for i, rec in enumerate(records):
+            if rec.get("episode") != i:
+                raise ValueError(f"{self.path}: line {i + 1} is not episode {i}")
+        return [_from_json(rec) for rec in records]
+
+    def append(self, records: Sequence[dict]) -> None:
+        """Add finished episodes, on disk before this returns."""
+        with open(self.path, "a") as f:
+            for rec in records:
+                f.write(json.dumps(metrics.json_safe(rec)) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        self.records += list(records)
+
+
+def _from_json(record: dict) -> dict:
+    """A record as written (``metrics.json_safe``: NaN and inf as null) back to its values:
+    a null ``min_ttc`` is inf (no projected conflict), any other null metric NaN."""
+    out = dict(record)
+    for key in metrics.SCENE_KEYS:
+        if out.get(key, 0) is None:
+            out[key] = math.inf if key == "min_ttc" else math.nan
+    out["per_second"] = {
+        h: {k: math.nan if v is None else v for k, v in row.items()}
+        for h, row in record.get("per_second", {}).items()
+    }
+    return out
+
+
+def run_identity(config: StressConfig, model: str) -> dict:
+    """What a stress run is, for :class:`EpisodeLog`: its config but the episode count, and
+    its model."""
+    out = config.to_dict()
+    out.pop("episodes")
+    return {**out, "model": model}
+
+
+def _remaining_scenes(config: StressConfig, done: Sequence[dict]) -> Iterator[Scene]:
+    """The scenes of episodes ``len(done)`` on: a generated road restarts from the seed after
+    the last done scene's (no scene is generated twice), a stored source skips ahead."""
+    k = len(done)
+    if config.scenario in Scenario.values() and k:
+        return scenes_for(config.scenario, config.episodes - k, done[-1]["scene_seed"] + 1)
+    return itertools.islice(scenes_for(config.scenario, config.episodes, config.seed), k, None)
+
+
 def run_episodes(
     model: WorldModel,
     config: StressConfig,
     planner_factory: Callable[[], Planner] | None = None,
     progress: bool = True,
+    log: EpisodeLog | None = None,
 ) -> list[dict]:
     """Run every episode; one record per episode (:func:`metrics.evaluate_scene` plus the
-    selection, the episode's seed and timing)."""
+    episode index, selection, seeds and timing). With a ``log``, episodes it holds are not
+    run again and each finished batch is appended to it."""
     from tqdm.auto import tqdm
 
     factory = planner_factory or (lambda: make_planner(config.planner))
     loop = ClosedLoop(model, config.sim)
-    scenes = scenes_for(config.scenario, config.episodes, config.seed)
-    records: list[dict] = []
+    records: list[dict] = [] if log is None else log.records[: config.episodes]
+    scenes = _remaining_scenes(config, records)
     bar = tqdm(total=config.episodes, desc="stress", unit="ep", disable=not progress)
-    index = 0
+    bar.update(len(records))
+    index = len(records)
     while index < config.episodes:
         chunk = []
         for scene in scenes:
@@ -104,7 +206,10 @@ def run_episodes(
             if len(chunk) == config.batch:
                 break
         seeds = [config.seed + index + k for k in range(len(chunk))]
-        records += run_batch(loop, chunk, seeds, [factory() for _ in chunk])
+        batch = run_batch(loop, chunk, seeds, [factory() for _ in chunk], first=index)
+        if log is not None:
+            log.append(batch)
+        records += batch
         index += len(chunk)
         bar.update(len(chunk))
         bar.set_postfix(cr=f"{np.mean([r['cr'] for r in records]):.2f}")
@@ -113,9 +218,13 @@ def run_episodes(
 
 
 def run_batch(
-    loop: ClosedLoop, scenes: Sequence[Scene], seeds: Sequence[int], planners: Sequence[Planner]
+    loop: ClosedLoop,
+    scenes: Sequence[Scene],
+    seeds: Sequence[int],
+    planners: Sequence[Planner],
+    first: int = 0,
 ) -> list[dict]:
-    """Run B episodes together to their end; one record each."""
+    """Run B episodes together to their end (episode indices ``first ..``); one record each."""
     start = time.perf_counter()
     loop.reset(scenes, seeds)
     for planner, scene, seed in zip(planners, scenes, seeds, strict=True):
@@ -134,18 +243,24 @@ def run_batch(
                 actions[b] = planner.act(state)
         loop.step(actions, states)
     wall = time.perf_counter() - start
-    return [_record(loop, b, scene, seeds[b], wall / B) for b, scene in enumerate(scenes)]
+    return [
+        _record(loop, b, scene, seeds[b], wall / B, first + b) for b, scene in enumerate(scenes)
+    ]
 
 
-def _record(loop: ClosedLoop, b: int, scene: Scene, seed: int, seconds: float) -> dict:
-    """Episode ``b``'s metrics (:func:`metrics.evaluate_scene`), selection and timing."""
+def _record(loop: ClosedLoop, b: int, scene: Scene, seed: int, seconds: float, index: int) -> dict:
+    """Episode ``index``'s record: its metrics (:func:`metrics.evaluate_scene` of batch row
+    ``b``), selection, seeds and timing."""
     ep = loop.episodes[b]
     sim = loop.scene(b)
     factual = scene.time_slice(0, sim.num_steps)
     rec = metrics.evaluate_scene(sim, factual, adversary=ep.adversary)
     conflict = ep.conflict
+    scene_seed = scene.metadata.get("seed")
     rec.update(
+        episode=int(index),
         seed=int(seed),
+        scene_seed=None if scene_seed is None else int(scene_seed),
         adversary_type=None if conflict is None else conflict.subtype,
         adversary_tier=None if conflict is None else conflict.tier,
         danger_score=None if conflict is None else float(conflict.score),
@@ -162,8 +277,10 @@ def run_policy_episodes(
     model: str = "default",
     env_config: dict | None = None,
     progress: bool = True,
+    log: EpisodeLog | None = None,
 ) -> list[dict]:
-    """Run every episode of an ``sb3:PATH.zip`` planner through ``CounterScene-v0``.
+    """Run every episode of an ``sb3:PATH.zip`` planner through ``CounterScene-v0`` (a
+    ``log`` as in :func:`run_episodes`).
 
     The policy sees the env's highway-env observations and acts through its action type.
     Episode i runs the same scene and closed-loop seed as :func:`run_episodes` would
@@ -193,9 +310,10 @@ def run_policy_episodes(
     }
     env = CounterSceneEnv(config=settings)
     policy.bind(env.observation_space, env.action_space)
-    records: list[dict] = []
+    records: list[dict] = [] if log is None else log.records[: config.episodes]
     bar = tqdm(total=config.episodes, desc="stress", unit="ep", disable=not progress)
-    for i, scene in enumerate(scenes_for(config.scenario, config.episodes, config.seed)):
+    bar.update(len(records))
+    for i, scene in enumerate(_remaining_scenes(config, records), start=len(records)):
         seed = config.seed + i
         start = time.perf_counter()
         obs, _ = env.reset(seed=seed, options={"scene": scene, "episode_seed": seed})
@@ -203,7 +321,10 @@ def run_policy_episodes(
         while not done:
             obs, _, terminated, truncated, _ = env.step(policy.predict(obs))
             done = terminated or truncated
-        records.append(_record(env.loop, 0, scene, seed, time.perf_counter() - start))
+        record = _record(env.loop, 0, scene, seed, time.perf_counter() - start, i)
+        if log is not None:
+            log.append([record])
+        records.append(record)
         bar.update(1)
         bar.set_postfix(cr=f"{np.mean([r['cr'] for r in records]):.2f}")
     bar.close()
@@ -248,3 +369,11 @@ def write_outputs(directory: str | os.PathLike, summary: dict, records: Sequence
     with open(out / "episodes.jsonl", "w") as f:
         for rec in records:
             f.write(json.dumps(metrics.json_safe(rec)) + "\n")
+
+
+def write_summary(directory: str | os.PathLike, summary: dict) -> None:
+    """``DIR/metrics.json``: the summary of a run whose episodes an :class:`EpisodeLog`
+    keeps."""
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps(metrics.json_safe(summary), indent=2) + "\n")

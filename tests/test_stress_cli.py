@@ -103,3 +103,69 @@ def test_stress_flags_reach_the_run(shard, capsys):
     assert (sim["strict_gates"], sim["traffic_yields"], sim["road_keeping"]) == (False,) * 3
     assert (sim["sampling_steps"], sim["eta"], sim["realism_weight"]) == (3, 0.5, 0.0)
     assert sim["max_windows"] == 2 and sim["sampler"] is None  # not given: the default
+
+
+def _without_timings(line: str) -> dict:
+    record = json.loads(line)
+    for key in ("seconds", "replan_seconds"):
+        record.pop(key)
+    return record
+
+
+def test_a_stopped_run_resumes_without_repeating_an_episode(shard, tmp_path, capsys):
+    args = ["--scenario", shard, "--episodes", "3", "--batch", "1", "--duration", "0.5", "--json"]
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    assert stress(capsys, *args, "--out", str(full))[0] == 0
+    lines = (full / "episodes.jsonl").read_text().splitlines()
+    assert [json.loads(x)["episode"] for x in lines] == [0, 1, 2]
+    # A run killed while writing its second episode: one whole line and half of the next.
+    cut.mkdir()
+    (cut / "run.json").write_text((full / "run.json").read_text())
+    (cut / "episodes.jsonl").write_text(lines[0] + "\n" + lines[1][: len(lines[1]) // 2])
+    code, out, _ = stress(capsys, *args, "--out", str(cut))
+    assert code == 0
+    resumed = (cut / "episodes.jsonl").read_text().splitlines()
+    assert resumed[0] == lines[0]  # kept, not run again
+    assert [_without_timings(x) for x in resumed] == [_without_timings(x) for x in lines]
+    summary = json.loads(out)
+    assert summary["episodes"] == 3
+    assert summary["horizons"] == json.loads((full / "metrics.json").read_text())["horizons"]
+
+
+def test_a_run_directory_refuses_other_settings(shard, tmp_path, capsys):
+    args = ["--scenario", shard, "--episodes", "1", "--duration", "0.3", "--out", str(tmp_path)]
+    assert stress(capsys, *args)[0] == 0
+    code, _, err = stress(capsys, *args, "--guidance", "none")
+    assert code == 1 and "other settings (sim)" in err and "another --out" in err
+    assert len((tmp_path / "episodes.jsonl").read_text().splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_a_killed_stress_process_loses_no_finished_episode(shard, tmp_path):
+    """SIGKILL in the middle of a run: the episodes it finished are on disk, and the rerun
+    completes the run as if it had never stopped."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    cmd = [sys.executable, "-m", "counterscene_env.cli", "stress", "--scenario", shard]
+    cmd += ["--episodes", "6", "--batch", "1", "--duration", "0.5", "--samples", "2", "--quiet"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    log = tmp_path / "killed" / "episodes.jsonl"
+    proc = subprocess.Popen([*cmd, "--out", str(tmp_path / "killed")], env=env)
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None:
+        if log.is_file() and len(log.read_text().splitlines()) >= 2:
+            break
+        time.sleep(0.05)
+    proc.kill()
+    proc.wait()
+    kept = log.read_text().splitlines()
+    assert len(kept) >= 2
+    assert subprocess.run([*cmd, "--out", str(tmp_path / "killed")], env=env).returncode == 0
+    assert subprocess.run([*cmd, "--out", str(tmp_path / "whole")], env=env).returncode == 0
+    resumed = log.read_text().splitlines()
+    whole = (tmp_path / "whole" / "episodes.jsonl").read_text().splitlines()
+    assert resumed[: len(kept) - 1] == kept[: len(kept) - 1]  # finished ones untouched
+    assert [_without_timings(x) for x in resumed] == [_without_timings(x) for x in whole]

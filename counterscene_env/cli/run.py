@@ -61,7 +61,11 @@ def add_stress(sub) -> None:
     )
     add_model_flag(st)
     add_json_flag(st, "print the summary as one JSON object")
-    st.add_argument("--out", help="also write DIR/metrics.json and DIR/episodes.jsonl")
+    st.add_argument(
+        "--out",
+        help="write DIR/episodes.jsonl as episodes finish and DIR/metrics.json at the end; "
+        "rerun the same command to resume a stopped run",
+    )
     add_quiet_flag(st)
     st.set_defaults(func=_cmd_stress)
 
@@ -105,11 +109,13 @@ def _sim_config(args: argparse.Namespace):
 def _cmd_stress(args: argparse.Namespace) -> int:
     from counterscene_env.stress import (
         SB3_PREFIX,
+        EpisodeLog,
         StressConfig,
         run_episodes,
+        run_identity,
         run_policy_episodes,
         summarize,
-        write_outputs,
+        write_summary,
     )
 
     sim = _sim_config(args)
@@ -121,6 +127,8 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         sim=sim,
         batch=args.batch,
     )
+    # With --out, every finished episode is on disk at once, and a rerun resumes the run.
+    log = EpisodeLog(args.out, run_identity(config, args.model)) if args.out else None
     if args.planner.startswith(SB3_PREFIX):
         env_config = None
         if args.env_config:
@@ -128,15 +136,17 @@ def _cmd_stress(args: argparse.Namespace) -> int:
             if not text.lstrip().startswith("{"):
                 text = Path(text).read_text()
             env_config = json.loads(text)
-        records = run_policy_episodes(config, args.model, env_config, progress=not args.quiet)
+        records = run_policy_episodes(
+            config, args.model, env_config, progress=not args.quiet, log=log
+        )
     else:
         if args.env_config:
             raise ValueError("--env-config applies to sb3:PATH.zip planners only")
         model = load_model(args.model)
-        records = run_episodes(model, config, progress=not args.quiet)
+        records = run_episodes(model, config, progress=not args.quiet, log=log)
     summary = summarize(records, config)
     if args.out:
-        write_outputs(args.out, summary, records)
+        write_summary(args.out, summary)
     if args.json:
         print(json.dumps(json_safe(summary)))
         return 0
