@@ -419,3 +419,15 @@ def test_lane_stubs_shorter_than_a_metre_do_not_break_the_import(tmp_path):
     reference = load_scenarionet(_write(tmp_path, _scenario(), name="ref.pkl"))
     assert len(scene.road.lane_centerlines) == len(reference.road.lane_centerlines)
     assert scene.road.drivable_area.intersects(shapely.Point(0.25, 40.0)), "its surface is kept"
+
+
+def test_a_corrupt_position_costs_its_samples_not_the_scene(tmp_path):
+    sd = _scenario()
+    track = sd["tracks"]["veh_a"]["state"]
+    track["position"] = np.asarray(track["position"], float).copy()
+    track["position"][35, 0] += 1e12
+    scene = load_scenarionet(_write(tmp_path, sd))
+    assert scene.metadata["repaired_tracks"] == {"veh_a": 1}
+    row = list(scene.agent_ids).index("veh_a")
+    assert not scene.valid[row, 35] and scene.valid[row, 34] and scene.valid[row, 36]
+    assert np.abs(scene.positions).max() < 1e3

@@ -119,3 +119,54 @@ def test_network_json_round_trip_and_refuses_foreign_classes(generated):
     evil = '[{"from": "a", "to": "b", "class": "os.system", "config": {}}]'
     with pytest.raises(ValueError, match="unknown lane class"):
         network_from_json(evil)
+
+
+def _moving_scene():
+    xy = np.zeros((2, 12, 2))
+    xy[:, :, 0] = np.arange(12)
+    xy[1, :, 1] = 3.5
+    return make_scene(xy)
+
+
+def test_a_position_jump_no_road_user_makes_is_refused_with_the_reason():
+    scene = _moving_scene()
+    positions = scene.positions.copy()
+    positions[1, 7, 0] += 1e12
+    with pytest.raises(SceneError, match=r"agent 'a1' moves 1e\+12 m between steps 6 and 7"):
+        scene.replace(positions=positions)
+
+
+def test_impossible_jumps_cost_only_their_samples_or_the_shorter_piece():
+    from counterscene_env.scene.core import drop_impossible_jumps
+
+    T = 20
+    positions = np.zeros((3, T, 2))
+    positions[:, :, 0] = np.arange(T) * 1.0  # 10 m/s
+    valid = np.ones((3, T), bool)
+    positions[0, 5, 0] = 1e12  # a lone bad sample
+    positions[1, 15:, 0] += 500.0  # a teleport: the last 5 steps are another car
+    fixed, repaired = drop_impossible_jumps(positions, valid, 0.1)
+    assert repaired == {0: 1, 1: 5}
+    assert fixed[0].sum() == T - 1 and not fixed[0, 5]
+    assert fixed[1, :15].all() and not fixed[1, 15:].any()
+    assert fixed[2].all()  # a sound track is left alone
+
+
+@pytest.mark.parametrize(
+    ("key", "message"),
+    [
+        ("road_lines", "lane centre line 0 has non-finite coordinates"),
+        ("road_widths", "lane width 0 must be finite and > 0"),
+    ],
+)
+def test_a_shard_with_non_finite_map_geometry_is_refused_with_the_reason(tmp_path, key, message):
+    from counterscene_env.scene.shards import load_scenes, save_scenes
+
+    path = tmp_path / "scene.npz"
+    save_scenes([_moving_scene()], path)
+    arrays = dict(np.load(path, allow_pickle=False))
+    arrays[f"0/{key}"] = arrays[f"0/{key}"].copy()
+    arrays[f"0/{key}"].flat[0] = np.nan
+    np.savez(path, **arrays)
+    with pytest.raises(ValueError, match=message):
+        load_scenes(path)

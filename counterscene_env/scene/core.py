@@ -25,6 +25,9 @@ from counterscene_env.scene.road import RoadMap
 AGENT_TYPES = ("vehicle", "pedestrian", "cyclist", "other")
 
 DEFAULT_DT = 0.1  # [s]
+#: No road user moves faster than this between two valid steps [m/s] (360 km/h): a faster
+#: "move" is a corrupt position (``Scene`` refuses it; importers repair the track).
+MAX_SPEED = 100.0
 DEFAULT_HISTORY_STEPS = 31  # 3 s of history including the current frame (paper: 31)
 
 
@@ -138,10 +141,28 @@ class Scene:
             arr = getattr(self, name)
             if not np.isfinite(arr[self.valid]).all():
                 raise SceneError(f"{name} has non-finite values at valid steps")
+        self._validate_motion()
         if not np.isfinite(self.extents).all() or (self.extents <= 0).any():
             raise SceneError("extents must be finite and positive (length, width) in m")
         if not isinstance(self.road, RoadMap):
             raise SceneError(f"road must be a RoadMap, got {type(self.road).__name__}")
+
+    def _validate_motion(self) -> None:
+        """Refuse a track that moves faster than any road user can between two valid steps
+        (:data:`MAX_SPEED`): a corrupt position, not a driver."""
+        ok = self.valid[:, 1:] & self.valid[:, :-1]
+        if not ok.any():
+            return
+        step = np.linalg.norm(np.diff(self.positions, axis=1), axis=-1)
+        step = np.where(ok, step, 0.0)
+        worst = np.unravel_index(np.argmax(step), step.shape)
+        if step[worst] > MAX_SPEED * self.dt:
+            agent, t = worst
+            raise SceneError(
+                f"agent {str(self.agent_ids[agent])!r} moves {step[worst]:.4g} m between steps {t} "
+                f"and {t + 1} ({step[worst] / self.dt:.4g} m/s, above the {MAX_SPEED:g} m/s "
+                "no road user reaches): a corrupt position"
+            )
 
     # ------------------------------------------------------------------ basic facts
     @property
@@ -249,3 +270,39 @@ class Scene:
             f"Scene({self.scenario_id!r}, agents={self.num_agents}, steps={self.num_steps}, "
             f"dt={self.dt}, ego={self.ego_index}, lanes={len(self.road.lane_centerlines)})"
         )
+
+
+def drop_impossible_jumps(
+    positions: np.ndarray, valid: np.ndarray, dt: float
+) -> tuple[np.ndarray, dict[int, int]]:
+    """Repair tracks with corrupt positions, one track at a time. A lone sample that jumps
+    away and back (faster than :data:`MAX_SPEED`) is made invalid; where a track still
+    "moves" faster than that between two valid steps, it is cut there and only its longest
+    consistent piece stays valid.
+
+    Args:
+        positions: ``[N, T, 2]`` m; valid: ``[N, T]`` bool; dt: step [s].
+
+    Returns:
+        The repaired ``valid`` (a copy) and ``{row: steps made invalid}`` for the rows cut.
+    """
+    before = valid.sum(axis=1)
+    valid = valid.copy()
+    limit = MAX_SPEED * dt
+    step = np.linalg.norm(np.diff(positions, axis=1), axis=-1)
+    jumps = (step > limit) & valid[:, 1:] & valid[:, :-1]
+    # A lone bad sample (a jump there and back, its neighbours consistent) loses that sample.
+    skip = np.linalg.norm(positions[:, 2:] - positions[:, :-2], axis=-1) <= 2 * limit
+    spike = jumps[:, :-1] & jumps[:, 1:] & skip
+    valid[:, 1:-1] &= ~spike
+    step = np.linalg.norm(np.diff(positions, axis=1), axis=-1)
+    jumps = (step > limit) & valid[:, 1:] & valid[:, :-1]
+    repaired = {int(r): int(before[r] - valid[r].sum()) for r in np.flatnonzero(spike.any(1))}
+    for row in np.flatnonzero(jumps.any(axis=1)):
+        # Piece index of every step: it grows by one after each jump.
+        piece = np.concatenate([[0], np.cumsum(jumps[row])])
+        sizes = np.bincount(piece, weights=valid[row])
+        keep = valid[row] & (piece == int(np.argmax(sizes)))
+        valid[row] = keep
+        repaired[int(row)] = int(before[row] - keep.sum())
+    return valid, repaired

@@ -65,9 +65,15 @@ class RoadMap:
             raise ValueError(
                 f"{len(self.lane_centerlines)} centre lines but {len(self.lane_widths)} widths"
             )
-        for c in self.lane_centerlines:
+        for i, c in enumerate(self.lane_centerlines):
             if c.ndim != 2 or c.shape[1] != 2 or len(c) < 2:
-                raise ValueError(f"a lane centre line must be [P>=2, 2], got {c.shape}")
+                raise ValueError(f"lane centre line {i} must be [P>=2, 2], got {c.shape}")
+            if not np.isfinite(c).all():
+                raise ValueError(f"lane centre line {i} has non-finite coordinates (NaN or inf)")
+        bad = ~(np.isfinite(self.lane_widths) & (self.lane_widths > 0))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise ValueError(f"lane width {i} must be finite and > 0 m, got {self.lane_widths[i]}")
         # Point-in-area queries are the hot path of ORR: prepare the geometry once.
         shapely.prepare(self.drivable_area)
 

@@ -71,7 +71,7 @@ import numpy as np
 import shapely
 
 from counterscene_env.geometry import wrap_angle
-from counterscene_env.scene.core import DEFAULT_DT, Scene, SceneError
+from counterscene_env.scene.core import DEFAULT_DT, Scene, SceneError, drop_impossible_jumps
 from counterscene_env.scene.road import RoadMap
 
 try:  # numpy >= 2 spelling first
@@ -245,6 +245,9 @@ def scene_from_description(
             f"{source}: current_index {current_index} outside the log's {num_steps} steps at 10 Hz"
         )
     road, num_lanes = _read_map(sd["map_features"], source)
+    # A corrupt position (a jump no road user makes) costs its track's steps, not the scene.
+    valids, repaired = drop_impossible_jumps(positions, valids, DEFAULT_DT)
+    positions = np.where(valids[..., None], positions, 0.0)
 
     counts = {t: int(sum(1 for x in types if x == t)) for t in ("vehicle", "pedestrian", "cyclist")}
     counts["other"] = len(types) - sum(counts.values())
@@ -258,6 +261,7 @@ def scene_from_description(
         "source_dt": round(DEFAULT_DT / step, 9),
         "subsample": step,
         "num_lanes": num_lanes,
+        "repaired_tracks": {ids[row]: n for row, n in repaired.items()},
     }
     try:
         return Scene(
