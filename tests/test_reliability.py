@@ -194,3 +194,42 @@ def test_kinematics_observation_stays_inside_its_space_with_one_vehicle(shard):
     obs, _ = env.reset(seed=0)
     assert env.observation_space.contains(obs)
     env.close()
+
+
+EPISODE_SCRIPT = """
+import hashlib, json, sys
+import gymnasium as gym, numpy as np
+import counterscene_env
+env = gym.make("CounterScene-v0", config={"scenario": sys.argv[1], "duration": 2.0})
+rng = np.random.default_rng(11)
+out = []
+obs, info = env.reset(seed=5)
+for _ in range(25):
+    obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, 2).astype(np.float32))
+    out.append([hashlib.sha256(obs.tobytes()).hexdigest(), repr(reward), terminated, truncated,
+                json.dumps(info, sort_keys=True, default=repr)])
+    if terminated or truncated:
+        obs, info = env.reset()
+print(json.dumps(out))
+"""
+
+
+@pytest.mark.slow
+def test_the_same_seed_and_actions_give_the_same_episode_in_two_processes(shard):
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "SDL_VIDEODRIVER": "dummy"}
+    runs = [
+        subprocess.run(
+            [sys.executable, "-c", EPISODE_SCRIPT, shard],
+            env=env,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+        for _ in range(2)
+    ]
+    assert json.loads(runs[0]) == json.loads(runs[1])
+    assert len(json.loads(runs[0])) == 25

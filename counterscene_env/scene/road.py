@@ -74,6 +74,11 @@ class RoadMap:
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise ValueError(f"lane width {i} must be finite and > 0 m, got {self.lane_widths[i]}")
+        if not isinstance(self.drivable_area, shapely.Polygon | shapely.MultiPolygon):
+            raise ValueError(
+                "drivable_area must be a shapely Polygon or MultiPolygon, got "
+                f"{type(self.drivable_area).__name__}"
+            )
         # Point-in-area queries are the hot path of ORR: prepare the geometry once.
         shapely.prepare(self.drivable_area)
 

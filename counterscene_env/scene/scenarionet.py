@@ -213,9 +213,17 @@ def load_scenarionet(path: str | os.PathLike, current_index: int = 30) -> Scene:
         ScenarioNetError: the file is malformed; the message names the file and the field.
     """
     path = Path(path)
-    return scene_from_description(
-        read_scenario_description(path), source=path.name, current_index=current_index
-    )
+    sd = read_scenario_description(path)
+    try:
+        return scene_from_description(sd, source=path.name, current_index=current_index)
+    except SceneError:
+        raise
+    except (TypeError, ValueError, KeyError, IndexError, AttributeError, OverflowError) as exc:
+        # A field of a type or shape the checks above did not foresee: still the file's fault,
+        # and said so with the file's name rather than a traceback.
+        raise ScenarioNetError(
+            f"{path.name}: malformed scenario ({type(exc).__name__}: {exc})"
+        ) from exc
 
 
 def scene_from_description(

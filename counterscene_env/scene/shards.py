@@ -126,6 +126,9 @@ def load_scenes(path: str | os.PathLike) -> list[Scene]:
         KeyError,
         TypeError,
         AttributeError,
+        IndexError,
+        OverflowError,
+        shapely.errors.ShapelyError,
     ) as exc:
         raise ShardError(
             f"{path}: truncated or corrupt shard ({type(exc).__name__}: {exc})"
