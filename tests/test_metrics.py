@@ -181,7 +181,9 @@ def test_car_leaving_the_road_known_orr(road):
     x = 10 + 0.5 * np.arange(steps)
     pos = np.zeros((4, steps, 2))
     pos[:, :, 0] = x
-    pos[0, HIST + 50 :, 1] = 20.0  # ego off the road for the second half of the rollout
+    # The ego swerves off the road (at most 9 m a step) for the second half of the rollout.
+    pos[0, HIST + 48 : HIST + 51, 1] = 5.0, 6.0, 15.0  # 6 m: the road's edge, still on it
+    pos[0, HIST + 51 :, 1] = 20.0
     pos[1, :, 1] = 4.0  # on the road throughout
     pos[2, :, 1] = 50.0  # a pedestrian far off the road: not a vehicle, not scored
     pos[3, :, 1] = 50.0  # a vehicle off the road only while invalid
