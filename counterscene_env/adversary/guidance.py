@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from counterscene_env.adversary.selection import (
+from counterscene_env.adversary.conflicts import (
     INTERSECTION,
     LEAD_BRAKING,
     REAR_APPROACH,

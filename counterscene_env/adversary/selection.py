@@ -1,46 +1,7 @@
-"""Adversary selection: the paper's causal conflict mining, and baseline selectors.
+"""Adversary selection: choose the agent the counterfactual guidance pushes into the ego.
 
-This module's one job is to choose which agent the counterfactual guidance should push into
-the ego, and where and when (paper appendix "Conflict Detection and Scoring", Algorithm 1
-"Offline Causal Conflict Mining and Target Identification"; docs/design.md, "Causal adversary selection"). It reads only future
-tracks, so it works the same on the factual log (the paper's offline mining) and on the world
-model's own unguided prediction (re-mined at every replan). Plain numpy.
-
-Inputs, shared by every function:
-
-- ``positions [N, T, 2] m``: the FUTURE tracks to mine (e.g. log steps ``now + 1 ..``), any
-  frame; ``valid [N, T] bool``. Positions at invalid steps are ignored (NaN is fine there); a
-  non-finite position at a valid step is a ``ValueError``.
-- ``ego``: the ego's row. It is never a candidate.
-- ``dt`` s per step; ``start_step``: the absolute episode step of index 0, so that the arrival
-  steps in a :class:`Conflict` are absolute (the guidance converts them to its window).
-
-Causal mining (``method="causal"``), faithful to the paper:
-
-1. Candidates: every eligible non-ego row with at least ``min_joint_steps`` (5) steps ``V`` at
-   which it and the ego are both valid.
-2. Closest spatio-temporal encounter over all pairs of jointly valid steps,
-   ``(tau_e, tau_a) = argmin_{t_e, t_a in V} ||p_e(t_e) - p_a(t_a)||`` (first minimum in
-   row-major order); conflict point ``c`` the midpoint, ``d_min`` the distance, arrival gap
-   ``|tau_e - tau_a| dt`` and ``v_rel`` the norm of the finite-difference velocity difference at
-   the encounter.
-3. Type from the coarse travel directions (last minus first valid position): cosine > 0.8 is
-   ``following`` (``rear_approach`` if the candidate starts behind the ego along the ego's
-   direction, ``lead_braking`` if ahead), otherwise ``intersection``.
-4. Score ``v_rel / (gap + 0.5)`` for intersections, ``v_rel / (d_min + 1)`` for following.
-5. Tiers 1 (intersection, gap < 5 s), 2 (rear approach, d_min < 10 m), 3 (lead braking,
-   d_min < 12 m), each also needing score >= 0.05; the adversary is the first by
-   ``(tier, -score)``, ties to the lower row. Guidance weight ``-80 - 40 min(s, 1)``
-   (intersection) or ``-60 - 30 min(s, 1)`` (following); ``FALLBACK_WEIGHT`` (-50) for callers
-   with no conflict.
-
-What the paper lacks and we add (docs/design.md, "Strict selection gates"): optional *strict* gates (on by default in
-:func:`select_adversary`, off in the paper preset) that withdraw the tier of a conflict that the
-guidance cannot realistically turn into a near miss: ``d_min >= 15 m``, arrival gap >= 1.5 s, an
-encounter on the last jointly valid step (truncated by the horizon, so not a real closest
-approach) or, for both, on the first (the two are closest *now* and drift apart: no conflict
-lies ahead for the guidance to sharpen; side-by-side cars at a junction are the common case),
-or a candidate that does not move (mean speed <= 1 m/s).
+The causal selector (the paper's) takes the first mined conflict by ``(tier, -score)``
+(``adversary/conflicts.py``, which also documents the inputs and the strict gates).
 
 Baselines (paper Table 3), behind the same interface, differ only in the choice: ``random``
 (uniform), ``distance`` (SafeSim: nearest at the first jointly valid step) and ``ttc`` (CCDiff:
@@ -56,10 +17,34 @@ unguided world model (docs/design.md, "Environment semantics").
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
+from counterscene_env.adversary.conflicts import (
+    _HEADING_MIN_SPEED,
+    DEFAULT_EXTENT,
+    DIRECTION_EPS,
+    FALLBACK_WEIGHT,
+    FOLLOWING,
+    INTERSECTION,
+    LEAD_BRAKING,
+    MIN_JOINT_STEPS,
+    REAR_APPROACH,
+    STRICT_MIN_SPEED,
+    TTC_HORIZON,
+    Conflict,
+    Tracks,
+    _check_finite_where_valid,
+    _travel_direction,
+    check_eligible,
+    check_start_step,
+    check_tracks,
+    encounter,
+    mean_speed,
+    mine,
+    mine_conflicts,
+)
 from counterscene_env.config import Selector
 from counterscene_env.geometry import box_time_to_collision
 
@@ -77,89 +62,8 @@ __all__ = [
     "select_adversary",
 ]
 
-INTERSECTION, FOLLOWING = "intersection", "following"
-REAR_APPROACH, LEAD_BRAKING = "rear_approach", "lead_braking"
 #: The selection methods (:class:`~counterscene_env.config.Selector`).
 METHODS = Selector.values()
-
-# ---------------------------------------------------------------- paper constants (appendix)
-#: A candidate needs this many steps at which it and the ego are both valid (Algorithm 1, l. 5).
-MIN_JOINT_STEPS = 5
-#: Direction cosine above which an interaction is ``following`` (appendix, type classification).
-FOLLOWING_COS = 0.8
-#: A coarse travel direction shorter than this (m) has no direction: cosine 0, ``intersection``.
-DIRECTION_EPS = 1e-6
-#: s_conflict = v_rel / (gap + 0.5 s) for intersections: co-arrival matters.
-INTERSECTION_GAP_OFFSET = 0.5
-#: s_conflict = v_rel / (d_min + 1.0 m) for following: closing distance matters.
-FOLLOWING_DISTANCE_OFFSET = 1.0
-#: Tier 1: intersection with arrival gap below this, s.
-TIER1_MAX_GAP = 5.0
-#: Tier 2: rear approach with d_min below this, m.
-TIER2_MAX_DISTANCE = 10.0
-#: Tier 3: lead braking with d_min below this, m.
-TIER3_MAX_DISTANCE = 12.0
-#: Every tier needs s_conflict at least this.
-MIN_SCORE = 0.05
-#: w_guide = base + slope min(s, 1), by type (appendix, guidance weight).
-INTERSECTION_WEIGHT = (-80.0, -40.0)
-FOLLOWING_WEIGHT = (-60.0, -30.0)
-#: w_guide when no conflict was mined (used by callers that guide without a target).
-FALLBACK_WEIGHT = -50.0
-
-# ---------------------------------------------------------------- strict gates (ours)
-#: Two agents that never come within this (m) of each other are no conflict worth guiding:
-#: the paper's tier 1 has no distance limit at all, so a car on a far parallel road qualifies.
-STRICT_MAX_DISTANCE = 15.0
-#: Arrival gap (s) above which the two agents pass the conflict point at unrelated times; the
-#: progressive guidance can compress a gap, but only a short one without implausible motion.
-STRICT_MAX_GAP = 1.5
-#: Mean speed (m/s) over its valid steps that a candidate must exceed: guidance acts on the
-#: adversary's actions, and a parked car's "encounter" is only the ego driving past it.
-STRICT_MIN_SPEED = 1.0
-
-# ---------------------------------------------------------------- baselines
-#: Constant-velocity look-ahead of the ``ttc`` selector, s (CCDiff-style).
-TTC_HORIZON = 10.0
-#: Box (length, width) m when ``extents`` is not given: a passenger car.
-DEFAULT_EXTENT = (4.5, 2.0)
-#: Below this speed (m/s) a finite-difference velocity gives no heading for the ``ttc`` boxes.
-_HEADING_MIN_SPEED = 0.1
-
-
-@dataclass(frozen=True)
-class Conflict:
-    """The closest encounter of one candidate with the ego, typed, scored and tiered.
-
-    Attributes:
-        agent: row of the candidate in the arrays given.
-        conflict_point: ``[2] m``, midpoint of the closest encounter, same frame as the inputs
-            (read-only array).
-        ego_step: ``tau_e``, absolute step (``start_step`` + index into the arrays) at which the
-            ego is at its end of the closest encounter.
-        adversary_step: ``tau_a``, absolute step, the candidate's end.
-        min_distance: ``d_min``, m.
-        arrival_gap: ``|tau_e - tau_a| dt``, s.
-        relative_speed: ``v_rel``, m/s, finite difference at the encounter.
-        type: ``INTERSECTION`` or ``FOLLOWING``.
-        subtype: ``INTERSECTION`` for intersections, else ``REAR_APPROACH`` / ``LEAD_BRAKING``.
-        score: ``s_conflict`` (m/s^2 for intersections, 1/s for following).
-        tier: 1, 2 or 3, or None when the tier rule (or a strict gate) rejects the conflict.
-        weight: ``w_guide``, the guidance weight for this type and score.
-    """
-
-    agent: int
-    conflict_point: np.ndarray
-    ego_step: int
-    adversary_step: int
-    min_distance: float
-    arrival_gap: float
-    relative_speed: float
-    type: str
-    subtype: str
-    score: float
-    tier: int | None
-    weight: float
 
 
 @dataclass(frozen=True)
@@ -180,337 +84,17 @@ class Selection:
     num_candidates: int
 
 
-# ---------------------------------------------------------------- input checking
-
-
-@dataclass(frozen=True)
-class _Tracks:
-    """Checked inputs. ``positions`` is zero (not NaN) at invalid steps, so nothing propagates."""
-
-    positions: np.ndarray  # [N, T, 2] m
-    valid: np.ndarray  # [N, T] bool
-    velocities: np.ndarray  # [N, T, 2] m/s, finite difference, 0 where none / invalid
-    speeds: np.ndarray  # [N, T] m/s, 0 at invalid steps
-    ego: int
-    dt: float
-
-
-def _check_index(value: object, n: int, name: str) -> int:
-    """An agent row in ``[0, n)``, as a Python int."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise ValueError(f"{name} must be an integer row index, got {value!r}")
-    if not 0 <= int(value) < n:
-        raise ValueError(f"{name} index {int(value)} out of range for {n} agents")
-    return int(value)
-
-
-def _check_finite_where_valid(values: np.ndarray, valid: np.ndarray, name: str) -> None:
-    """``values [N, T, ...]`` must be finite at every valid step; say where it is not."""
-    bad = ~np.isfinite(values).reshape(*valid.shape, -1).all(-1) & valid
-    if bad.any():
-        agent, step = (int(i) for i in np.argwhere(bad)[0])
-        raise ValueError(
-            f"{name} is not finite at a valid step (agent {agent}, step {step}; "
-            f"{int(bad.sum())} such entries)"
-        )
-
-
-def _finite_difference_velocities(
-    positions: np.ndarray, valid: np.ndarray, dt: float
-) -> np.ndarray:
-    """``[N, T, 2] m/s`` velocities by finite difference, as the paper's v_rel.
-
-    Backward difference ``(p(t) - p(t-1)) / dt`` where steps t-1 and t are both valid (the
-    paper's formula); else the forward difference ``(p(t+1) - p(t)) / dt`` (index 0, or after a
-    gap); else 0 (an isolated valid step has no velocity). 0 at invalid steps.
-    """
-    n, t, _ = positions.shape
-    if t < 2:
-        return np.zeros_like(positions)
-    diff = (positions[:, 1:] - positions[:, :-1]) / dt  # [N, T-1, 2]: step k -> k+1
-    pair_ok = valid[:, 1:] & valid[:, :-1]  # [N, T-1]
-    backward = np.zeros_like(positions)
-    backward[:, 1:] = diff
-    forward = np.zeros_like(positions)
-    forward[:, :-1] = diff
-    backward_ok = np.zeros((n, t), dtype=bool)
-    backward_ok[:, 1:] = pair_ok
-    forward_ok = np.zeros((n, t), dtype=bool)
-    forward_ok[:, :-1] = pair_ok
-    return np.where(backward_ok[..., None], backward, np.where(forward_ok[..., None], forward, 0.0))
-
-
-def _check_tracks(
-    positions: np.ndarray,
-    valid: np.ndarray,
-    ego: int,
-    *,
-    speeds: np.ndarray | None,
-    dt: float,
-    min_joint_steps: int,
-) -> _Tracks:
-    """Check shapes, finiteness and scalars; derive velocities and speeds."""
-    positions = np.array(positions, dtype=np.float64)  # a copy: we overwrite invalid steps
-    if positions.ndim != 3 or positions.shape[-1] != 2:
-        raise ValueError(f"positions must be [N, T, 2], got shape {positions.shape}")
-    n, t, _ = positions.shape
-    if n == 0 or t == 0:
-        raise ValueError(
-            f"positions must have at least one agent and one step, got {positions.shape}"
-        )
-    valid = np.asarray(valid)
-    if valid.shape != (n, t):
-        raise ValueError(f"valid must be [N, T] = {(n, t)} like positions, got shape {valid.shape}")
-    valid = valid.astype(bool)
-    ego = _check_index(ego, n, "ego")
-    if not (isinstance(dt, (int, float, np.floating, np.integer)) and math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a positive finite number of seconds, got {dt!r}")
-    dt = float(dt)
-    if isinstance(min_joint_steps, bool) or not isinstance(min_joint_steps, (int, np.integer)):
-        raise ValueError(f"min_joint_steps must be an integer, got {min_joint_steps!r}")
-    if min_joint_steps < 1:
-        raise ValueError(f"min_joint_steps must be >= 1, got {min_joint_steps}")
-    _check_finite_where_valid(positions, valid, "positions")
-    positions[~valid] = 0.0
-    velocities = _finite_difference_velocities(positions, valid, dt)
-    if speeds is None:
-        speed = np.hypot(velocities[..., 0], velocities[..., 1])
-    else:
-        speed = np.array(speeds, dtype=np.float64)
-        if speed.shape != (n, t):
-            raise ValueError(f"speeds must be [N, T] = {(n, t)} like positions, got {speed.shape}")
-        _check_finite_where_valid(speed, valid, "speeds")
-        speed[~valid] = 0.0
-    return _Tracks(positions, valid, velocities, speed, ego, dt)
-
-
-def _check_eligible(eligible: np.ndarray | None, n: int) -> np.ndarray:
-    """``[N] bool``; all True when None."""
-    if eligible is None:
-        return np.ones(n, dtype=bool)
-    eligible = np.asarray(eligible)
-    if eligible.shape != (n,):
-        raise ValueError(f"eligible must be [N] = ({n},), got shape {eligible.shape}")
-    return eligible.astype(bool)
-
-
-def _check_start_step(start_step: int) -> int:
-    if isinstance(start_step, bool) or not isinstance(start_step, (int, np.integer)):
-        raise ValueError(f"start_step must be an integer step, got {start_step!r}")
-    return int(start_step)
-
-
-# ---------------------------------------------------------------- mining
-
-
-def _travel_direction(positions: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """``[2] m`` coarse travel direction: last valid position minus first valid position."""
-    steps = np.flatnonzero(valid)
-    if steps.size == 0:
-        return np.zeros(2)
-    return positions[steps[-1]] - positions[steps[0]]
-
-
-def _tier(subtype: str, gap: float, d_min: float, score: float) -> int | None:
-    """The paper's TierAssign: 1, 2, 3, or None (no conflict worth guiding)."""
-    if score < MIN_SCORE:
-        return None
-    if subtype == INTERSECTION:
-        return 1 if gap < TIER1_MAX_GAP else None
-    if subtype == REAR_APPROACH:
-        return 2 if d_min < TIER2_MAX_DISTANCE else None
-    return 3 if d_min < TIER3_MAX_DISTANCE else None
-
-
-def _weight(kind: str, score: float) -> float:
-    """w_guide = base + slope min(s, 1) by type (appendix, guidance weight)."""
-    base, slope = INTERSECTION_WEIGHT if kind == INTERSECTION else FOLLOWING_WEIGHT
-    return base + slope * min(score, 1.0)
-
-
-def _encounter(
-    tracks: _Tracks, agent: int, start_step: int, min_joint_steps: int
-) -> Conflict | None:
-    """Algorithm 1, lines 4-19, for one candidate (no strict gates); None if too few steps."""
-    ego, pos, valid, dt = tracks.ego, tracks.positions, tracks.valid, tracks.dt
-    joint = np.flatnonzero(valid[ego] & valid[agent])  # V, indices into the arrays
-    if joint.size < min_joint_steps:
-        return None
-    p_e, p_a = pos[ego, joint], pos[agent, joint]  # [V, 2] m
-    diff = p_e[:, None, :] - p_a[None, :, :]  # [V, V, 2]: rows ego steps, columns agent steps
-    dist = np.hypot(diff[..., 0], diff[..., 1])  # [V, V] m
-    # argmin over the flattened matrix: the first minimum in row-major order, so ties go to
-    # the earliest ego step, then the earliest agent step (deterministic).
-    row, col = divmod(int(np.argmin(dist)), joint.size)
-    tau_e, tau_a = int(joint[row]), int(joint[col])
-    d_min = float(dist[row, col])
-    point = 0.5 * (pos[ego, tau_e] + pos[agent, tau_a])
-    point.setflags(write=False)
-    gap = abs(tau_e - tau_a) * dt
-    v_rel = float(np.linalg.norm(tracks.velocities[ego, tau_e] - tracks.velocities[agent, tau_a]))
-
-    # ClassifyConflict: cosine of the coarse travel directions over the whole given future.
-    d_e = _travel_direction(pos[ego], valid[ego])
-    d_a = _travel_direction(pos[agent], valid[agent])
-    norm_e, norm_a = float(np.linalg.norm(d_e)), float(np.linalg.norm(d_a))
-    cos = float(d_e @ d_a) / (norm_e * norm_a) if min(norm_e, norm_a) >= DIRECTION_EPS else 0.0
-    if cos > FOLLOWING_COS:
-        kind = FOLLOWING
-        # Order along the ego's direction at the first jointly valid step: behind -> the
-        # candidate closes in from the rear; ahead -> the ego closes in on a (braking) leader.
-        along = float((p_a[0] - p_e[0]) @ d_e)
-        subtype = REAR_APPROACH if along < 0.0 else LEAD_BRAKING
-        score = v_rel / (d_min + FOLLOWING_DISTANCE_OFFSET)
-    else:
-        kind = subtype = INTERSECTION
-        score = v_rel / (gap + INTERSECTION_GAP_OFFSET)
-
-    return Conflict(
-        agent=int(agent),
-        conflict_point=point,
-        ego_step=start_step + tau_e,
-        adversary_step=start_step + tau_a,
-        min_distance=d_min,
-        arrival_gap=gap,
-        relative_speed=v_rel,
-        type=kind,
-        subtype=subtype,
-        score=score,
-        tier=_tier(subtype, gap, d_min, score),
-        weight=_weight(kind, score),
-    )
-
-
-def _mean_speed(tracks: _Tracks, agent: int) -> float:
-    """m/s, mean over the agent's valid steps (0 if it has none)."""
-    on = tracks.valid[agent]
-    return float(tracks.speeds[agent, on].mean()) if on.any() else 0.0
-
-
-def _passes_strict(tracks: _Tracks, conflict: Conflict, start_step: int) -> bool:
-    """The strict gates (module constants): near, co-arriving, ahead and not truncated,
-    moving."""
-    joint = np.flatnonzero(tracks.valid[tracks.ego] & tracks.valid[conflict.agent])
-    first, last = start_step + int(joint[0]), start_step + int(joint[-1])
-    return (
-        conflict.min_distance < STRICT_MAX_DISTANCE
-        and conflict.arrival_gap < STRICT_MAX_GAP
-        and conflict.ego_step != last
-        and conflict.adversary_step != last
-        and not conflict.ego_step == conflict.adversary_step == first
-        and _mean_speed(tracks, conflict.agent) > STRICT_MIN_SPEED
-    )
-
-
-def _mine(
-    tracks: _Tracks, eligible: np.ndarray, start_step: int, strict: bool, min_joint_steps: int
-) -> list[Conflict]:
-    """Every candidate's conflict, in row order; tier None where a strict gate fails."""
-    out = []
-    for agent in np.flatnonzero(eligible):
-        if agent == tracks.ego:
-            continue
-        conflict = _encounter(tracks, int(agent), start_step, min_joint_steps)
-        if conflict is None:
-            continue
-        if (
-            strict
-            and conflict.tier is not None
-            and not _passes_strict(tracks, conflict, start_step)
-        ):
-            conflict = replace(conflict, tier=None)
-        out.append(conflict)
-    return out
-
-
-def encounter(
-    positions: np.ndarray,
-    valid: np.ndarray,
-    ego: int,
-    agent: int,
-    *,
-    dt: float = 0.1,
-    start_step: int = 0,
-    min_joint_steps: int = MIN_JOINT_STEPS,
-) -> Conflict | None:
-    """The closest spatio-temporal encounter of one agent with the ego (Algorithm 1, l. 4-19).
-
-    Args:
-        positions: ``[N, T, 2] m`` future tracks (NaN allowed at invalid steps).
-        valid: ``[N, T] bool``.
-        ego: the ego's row.
-        agent: the candidate's row (not the ego).
-        dt: s per step.
-        start_step: absolute episode step of index 0.
-        min_joint_steps: jointly valid steps needed.
-
-    Returns:
-        The :class:`Conflict` with the paper's tier rule applied (no strict gates: those need
-        the candidate's speed, see :func:`mine_conflicts`), or None when the two share fewer
-        than ``min_joint_steps`` jointly valid steps.
-
-    Raises:
-        ValueError: inconsistent shapes, a row out of range, ``agent == ego``, a non-finite
-            position at a valid step.
-    """
-    tracks = _check_tracks(
-        positions, valid, ego, speeds=None, dt=dt, min_joint_steps=min_joint_steps
-    )
-    agent = _check_index(agent, tracks.valid.shape[0], "agent")
-    if agent == tracks.ego:
-        raise ValueError(f"agent {agent} is the ego: the ego is never its own adversary")
-    return _encounter(tracks, agent, _check_start_step(start_step), min_joint_steps)
-
-
-def mine_conflicts(
-    positions: np.ndarray,
-    valid: np.ndarray,
-    ego: int,
-    *,
-    speeds: np.ndarray | None = None,
-    eligible: np.ndarray | None = None,
-    dt: float = 0.1,
-    start_step: int = 0,
-    strict: bool = False,
-    min_joint_steps: int = MIN_JOINT_STEPS,
-) -> list[Conflict]:
-    """Every candidate's conflict with the ego (Algorithm 1's loop, keeping the untiered too).
-
-    Args:
-        positions: ``[N, T, 2] m`` future tracks (NaN allowed at invalid steps).
-        valid: ``[N, T] bool``.
-        ego: the ego's row; never a candidate.
-        speeds: ``[N, T] m/s`` for the strict moving gate; None derives them from finite
-            differences of ``positions``.
-        eligible: ``[N] bool`` rows that may be candidates (e.g. vehicles only); None: all.
-        dt: s per step.
-        start_step: absolute episode step of index 0.
-        strict: apply the strict gates (d_min, arrival gap, last step, moving): a conflict
-            failing one gets ``tier=None``. False is the paper.
-        min_joint_steps: jointly valid steps a candidate needs.
-
-    Returns:
-        One :class:`Conflict` per candidate, in row order; ``tier`` None for those the tier
-        rule (or a strict gate) rejects.
-    """
-    tracks = _check_tracks(
-        positions, valid, ego, speeds=speeds, dt=dt, min_joint_steps=min_joint_steps
-    )
-    eligible = _check_eligible(eligible, tracks.valid.shape[0])
-    return _mine(tracks, eligible, _check_start_step(start_step), bool(strict), min_joint_steps)
-
-
 # ---------------------------------------------------------------- selectors
 
 
-def _first_joint_steps(tracks: _Tracks, agents: np.ndarray) -> np.ndarray:
+def _first_joint_steps(tracks: Tracks, agents: np.ndarray) -> np.ndarray:
     """``[P]`` int: each agent's earliest step jointly valid with the ego (they all have one)."""
     joint = tracks.valid[agents] & tracks.valid[tracks.ego][None]  # [P, T]
     return np.argmax(joint, axis=1)
 
 
 def _headings(
-    tracks: _Tracks, agents: np.ndarray, steps: np.ndarray, yaws: np.ndarray | None
+    tracks: Tracks, agents: np.ndarray, steps: np.ndarray, yaws: np.ndarray | None
 ) -> np.ndarray:
     """``[P] rad`` box headings of ``agents`` at ``steps``.
 
@@ -529,7 +113,7 @@ def _headings(
     return out
 
 
-def _start_distances(tracks: _Tracks, agents: np.ndarray, steps: np.ndarray) -> np.ndarray:
+def _start_distances(tracks: Tracks, agents: np.ndarray, steps: np.ndarray) -> np.ndarray:
     """``[P] m`` centre distance to the ego at each agent's first jointly valid step."""
     delta = tracks.positions[agents, steps] - tracks.positions[tracks.ego, steps]
     return np.hypot(delta[:, 0], delta[:, 1])
@@ -611,17 +195,17 @@ def select_adversary(
         raise ValueError("method 'random' needs rng (a numpy.random.Generator)")
     if rng is not None and not isinstance(rng, np.random.Generator):
         raise ValueError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
-    tracks = _check_tracks(
+    tracks = check_tracks(
         positions, valid, ego, speeds=speeds, dt=dt, min_joint_steps=min_joint_steps
     )
     n = tracks.valid.shape[0]
-    eligible = _check_eligible(eligible, n)
+    eligible = check_eligible(eligible, n)
     extents = _check_extents(extents, n)
     yaws = _check_yaws(yaws, tracks.valid)
-    start_step = _check_start_step(start_step)
+    start_step = check_start_step(start_step)
     strict = bool(strict)
 
-    conflicts = _mine(tracks, eligible, start_step, strict, min_joint_steps)
+    conflicts = mine(tracks, eligible, start_step, strict, min_joint_steps)
     count = len(conflicts)
     if not conflicts:
         return Selection(
@@ -643,7 +227,7 @@ def select_adversary(
 
     # Baselines: the pool ignores tiers and conflict gates; strict keeps only movers, as
     # guidance on a parked car's actions cannot make it an adversary.
-    pool = [c for c in conflicts if not strict or _mean_speed(tracks, c.agent) > STRICT_MIN_SPEED]
+    pool = [c for c in conflicts if not strict or mean_speed(tracks, c.agent) > STRICT_MIN_SPEED]
     if not pool:
         return Selection(
             method,

@@ -1,0 +1,93 @@
+"""Shared pieces of the metrics: thresholds and keys, the rollout and horizon steps, agent
+lookup, the NaN-aware mean."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+
+from counterscene_env.scene.core import Scene
+
+#: Hard-braking threshold on the longitudinal acceleration, m/s^2 (paper: -3.0).
+HARD_BRAKE_THRESHOLD = -3.0
+
+
+#: Per-second keys of :func:`evaluate_scene` and :func:`aggregate`.
+PER_SECOND_KEYS = ("ADE", "FDE", "ORR", "HBR", "CR")
+
+
+#: Whole-rollout keys of :func:`evaluate_scene` (numbers averaged by :func:`aggregate`).
+SCENE_KEYS = (
+    "cr",
+    "cr_all_agents",
+    "cr_non_ego",
+    "cr_ego_adversary",
+    "hbr_ego",
+    "hbr_all",
+    "hbr_paper",
+    "orr",
+    "min_ttc",
+    "min_clearance_adversary",
+)
+
+
+#: The paper's horizon groups (main tables), in seconds.
+GROUPS = {"1-4s": (1, 2, 3, 4), "5-7s": (5, 6, 7), "8-10s": (8, 9, 10)}
+
+
+AccelerationSource = Literal["position", "speed"]
+
+
+# Steps after t that an acceleration sample at t reads: p_t, p_{t+1}, p_{t+2} for positions,
+# s_t, s_{t+1} for speeds. A sample belongs to a horizon only if all of them lie within it.
+REACH = {"position": 2, "speed": 1}
+
+
+def rollout_steps(scene: Scene) -> int:
+    """Number of rollout steps, ``T - current_index - 1``."""
+    return scene.num_steps - scene.current_index - 1
+
+
+def horizon_steps(scene: Scene, seconds: float | None) -> int:
+    """Rollout steps in the first ``seconds`` s: ``round(seconds / dt)``; None: all of them."""
+    if seconds is None:
+        return rollout_steps(scene)
+    return round(float(seconds) / scene.dt)
+
+
+def rollout_slice(scene: Scene) -> slice:
+    return slice(scene.current_index + 1, scene.num_steps)
+
+
+def in_horizon(scene: Scene, seconds: float | None, reach: int = 0) -> np.ndarray:
+    """``[T_roll]`` bool: rollout steps r whose samples (reading r .. r + reach) lie within h."""
+    return np.arange(rollout_steps(scene)) + reach < horizon_steps(scene, seconds)
+
+
+def agent_index(scene: Scene, agent: int | str) -> int:
+    """Row of an agent given by row index or by id; raises ValueError if there is none."""
+    if isinstance(agent, str):
+        rows = np.flatnonzero(scene.agent_ids == agent)
+        if rows.size == 0:
+            raise ValueError(f"no agent with id {agent!r} in scene {scene.scenario_id!r}")
+        return int(rows[0])
+    idx = int(agent)
+    if not 0 <= idx < scene.num_agents:
+        raise ValueError(f"agent index {idx} out of range for {scene.num_agents} agents")
+    return idx
+
+
+def adversary_index(scene: Scene, adversary: int | str) -> int:
+    idx = agent_index(scene, adversary)
+    if idx == scene.ego_index:
+        raise ValueError("the adversary cannot be the ego")
+    return idx
+
+
+def nan_mean(values: np.ndarray) -> float:
+    """Mean ignoring NaN; NaN (without a warning) when nothing is left."""
+    values = np.asarray(values, dtype=np.float64)
+    values = values[~np.isnan(values)]
+    return float(values.mean()) if values.size else math.nan

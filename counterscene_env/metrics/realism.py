@@ -1,0 +1,113 @@
+"""Realism measures of a scene's rollout: off-road (ORR) and displacement from the log
+(ADE/FDE)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from counterscene_env import geometry
+from counterscene_env.metrics.common import horizon_steps, in_horizon, nan_mean, rollout_slice
+from counterscene_env.scene.core import Scene
+
+
+def off_road_steps(scene: Scene) -> np.ndarray:
+    """``[N, T_roll]`` bool: agent valid and its centre outside ``scene.road.drivable_area``."""
+    sl = rollout_slice(scene)
+    inside = geometry.points_in_area(scene.road.drivable_area, scene.positions[:, sl])
+    return ~inside & scene.valid[:, sl]
+
+
+def off_road_rate_of(
+    scene: Scene, off: np.ndarray, horizon: float | None, include_ego: bool
+) -> float:
+    veh = scene.vehicle_mask.copy()
+    if not include_ego:
+        veh[scene.ego_index] = False
+    mask = scene.valid[:, rollout_slice(scene)] & in_horizon(scene, horizon)[None] & veh[:, None]
+    n = mask.sum()
+    return float((off & mask).sum() / n) if n else math.nan
+
+
+def off_road_rate(scene: Scene, horizon: float | None = None, include_ego: bool = True) -> float:
+    """ORR: fraction of valid vehicle agent-steps within the horizon whose centre is off-road.
+
+    The paper's ``1/(NT) sum 1[p not in D]`` over valid steps only. NaN if there are none.
+    """
+    return off_road_rate_of(scene, off_road_steps(scene), horizon, include_ego)
+
+
+def align_agents(sim: Scene, factual: Scene) -> np.ndarray:
+    """``[N_sim]`` rows of the factual scene holding each simulated agent (by ``agent_ids``).
+
+    Raises:
+        ValueError: naming the simulated agent ids the factual scene lacks, or if the two
+            scenes have different ``dt``.
+    """
+    if not math.isclose(sim.dt, factual.dt, rel_tol=1e-9):
+        raise ValueError(f"sim dt {sim.dt} s differs from factual dt {factual.dt} s")
+    lookup = {aid: i for i, aid in enumerate(factual.agent_ids.tolist())}
+    missing = [aid for aid in sim.agent_ids.tolist() if aid not in lookup]
+    if missing:
+        raise ValueError(
+            f"simulated agents missing from the factual scene {factual.scenario_id!r}: {missing}"
+        )
+    return np.array([lookup[aid] for aid in sim.agent_ids.tolist()], dtype=np.int64)
+
+
+def displacement_steps(sim: Scene, factual: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """Displacement of each simulated agent from its factual log over the rollout.
+
+    Rollout step r of the sim is compared with step ``factual.current_index + 1 + r`` of the
+    factual scene (both start from "now"); factual steps past its end count as invalid.
+
+    Returns:
+        ``[N_sim, T_roll]`` m (NaN where undefined) and ``[N_sim, T_roll]`` bool, True where both
+        are valid.
+    """
+    rows = align_agents(sim, factual)
+    sl = rollout_slice(sim)
+    p_sim, ok_sim = sim.positions[:, sl], sim.valid[:, sl]
+    t_roll = ok_sim.shape[1]
+    start = factual.current_index + 1
+    avail = max(0, min(t_roll, factual.num_steps - start))
+    p_fac = np.zeros_like(p_sim)
+    ok_fac = np.zeros_like(ok_sim)
+    p_fac[:, :avail] = factual.positions[rows, start : start + avail]
+    ok_fac[:, :avail] = factual.valid[rows, start : start + avail]
+    ok = ok_sim & ok_fac
+    dist = np.where(ok, np.linalg.norm(p_sim - p_fac, axis=-1), np.nan)
+    return dist, ok
+
+
+def ade_fde_of(dist: np.ndarray, ok: np.ndarray, n: int) -> tuple[float, float]:
+    """ADE/FDE over the first n rollout steps of ``[A, T_roll]`` displacements."""
+    d, m = dist[:, :n], ok[:, :n]
+    counts = m.sum(1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_agent = np.where(m, d, 0.0).sum(1) / counts  # mean over jointly valid steps
+    ade = nan_mean(per_agent[counts > 0])
+    fde = math.nan
+    if 0 < n <= ok.shape[1]:
+        last = ok[:, n - 1]
+        fde = nan_mean(dist[last, n - 1])
+    return ade, fde
+
+
+def non_ego_vehicles(scene: Scene) -> np.ndarray:
+    rows = scene.vehicle_mask.copy()
+    rows[scene.ego_index] = False
+    return rows
+
+
+def ade_fde(sim: Scene, factual: Scene, horizon: float | None = None) -> tuple[float, float]:
+    """ADE and FDE, m, of the non-ego vehicles against the factual log over ``horizon`` s.
+
+    ADE_h: mean over agents of each agent's mean displacement over its jointly valid steps among
+    the first h seconds; FDE_h: mean over the agents valid (in both) at the horizon's last step
+    of the displacement there. NaN when there is nothing to average.
+    """
+    dist, ok = displacement_steps(sim, factual)
+    rows = non_ego_vehicles(sim)
+    return ade_fde_of(dist[rows], ok[rows], horizon_steps(sim, horizon))

@@ -1,0 +1,177 @@
+"""One scene's metrics as a record (:func:`evaluate_scene`), records averaged as the paper's
+tables do (:func:`aggregate`), and JSON-safe output."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from counterscene_env.metrics.common import (
+    GROUPS,
+    HARD_BRAKE_THRESHOLD,
+    PER_SECOND_KEYS,
+    REACH,
+    SCENE_KEYS,
+    adversary_index,
+    horizon_steps,
+    nan_mean,
+    rollout_steps,
+)
+from counterscene_env.metrics.realism import (
+    ade_fde_of,
+    displacement_steps,
+    non_ego_vehicles,
+    off_road_rate_of,
+    off_road_steps,
+)
+from counterscene_env.metrics.safety import (
+    agent_overlaps,
+    any_collision,
+    ego_adversary_collision_steps,
+    ego_collision_steps,
+    hard_braking_flags,
+    hbr_all_of,
+    hbr_ego_of,
+    hbr_paper,
+    min_clearance,
+    min_ttc_ego,
+)
+from counterscene_env.scene.core import Scene
+
+
+def second_key(h: float) -> str:
+    return f"{h:g}"
+
+
+def evaluate_scene(
+    sim: Scene,
+    factual: Scene | None = None,
+    adversary: int | str | None = None,
+    horizons: Sequence[float] = tuple(range(1, 11)),
+    smooth: float = 0.0,
+) -> dict:
+    """All metrics of one simulated scene, as a JSON-serialisable dict of plain Python values.
+
+    Args:
+        sim: the simulated scene (history + rollout).
+        factual: its factual log (same agent ids), for ADE/FDE; None: ADE/FDE are NaN.
+        adversary: the adversary's row or id, for ``cr_ego_adversary`` and
+            ``min_clearance_adversary`` (NaN without one).
+        horizons: seconds at which the per-second values are reported.
+        smooth: s, moving-average window of the acceleration signal for HBR (0: none).
+
+    Returns:
+        ``{"scenario_id", "rollout_s", "adversary_id", "per_second", <SCENE_KEYS>}`` where
+        ``per_second[str(h)]`` holds ``ADE``/``FDE`` (m), ``ORR``, ``HBR`` (= hbr_ego within h)
+        and ``CR`` (ego collided at or before h) for each h, and the whole-rollout values are
+        ``cr``, ``cr_all_agents``, ``cr_non_ego``, ``cr_ego_adversary``, ``hbr_ego``,
+        ``hbr_all``, ``hbr_paper``, ``orr`` (fractions), ``min_ttc`` (s) and
+        ``min_clearance_adversary`` (m).
+    """
+    ego_hits = ego_collision_steps(sim)
+    overlaps = agent_overlaps(sim)
+    off = off_road_steps(sim)
+    flags, mask = hard_braking_flags(sim, None, "position", smooth, HARD_BRAKE_THRESHOLD)
+    e = sim.ego_index
+    dist = ok = None
+    if factual is not None:
+        dist, ok = displacement_steps(sim, factual)
+        rows = non_ego_vehicles(sim)
+        dist, ok = dist[rows], ok[rows]
+
+    per_second = {}
+    steps = np.arange(rollout_steps(sim))
+    for h in horizons:
+        n = horizon_steps(sim, h)
+        brake_in = mask[e] & (steps + REACH["position"] < n)
+        ade, fde = ade_fde_of(dist, ok, n) if dist is not None else (math.nan, math.nan)
+        per_second[second_key(h)] = {
+            "ADE": ade,
+            "FDE": fde,
+            "ORR": off_road_rate_of(sim, off, h, include_ego=True),
+            "HBR": float(flags[e][brake_in].any()) if brake_in.any() else math.nan,
+            "CR": float(ego_hits[steps < n].any()),
+        }
+
+    if adversary is not None:
+        adv = adversary_index(sim, adversary)
+        adversary_id = str(sim.agent_ids[adv])
+        cr_adv = float(ego_adversary_collision_steps(sim, adv).any())
+        clearance = min_clearance(sim, adv)
+    else:
+        adversary_id, cr_adv, clearance = None, math.nan, math.nan
+
+    return {
+        "scenario_id": str(sim.scenario_id),
+        "rollout_s": float(rollout_steps(sim) * sim.dt),
+        "adversary_id": adversary_id,
+        "per_second": per_second,
+        "cr": float(ego_hits.any()),
+        "cr_all_agents": float(any_collision(overlaps, e, include_ego=True).any()),
+        "cr_non_ego": float(any_collision(overlaps, e, include_ego=False).any()),
+        "cr_ego_adversary": cr_adv,
+        "hbr_ego": hbr_ego_of(flags, mask, sim),
+        "hbr_all": hbr_all_of(flags, mask, sim),
+        "hbr_paper": hbr_paper(sim),
+        "orr": off_road_rate_of(sim, off, None, include_ego=True),
+        "min_ttc": min_ttc_ego(sim),
+        "min_clearance_adversary": clearance,
+    }
+
+
+def aggregate(records: Sequence[dict]) -> dict:
+    """Average :func:`evaluate_scene` records over scenes, as the paper's tables do.
+
+    Every mean ignores NaN (a scene with nothing to measure does not count as 0).
+
+    Returns:
+        ``{"num_scenes", "per_second", "groups", "overall"}``: ``per_second[str(h)][key]`` the
+        mean over scenes of each per-second value (keys :data:`PER_SECOND_KEYS`);
+        ``groups["1-4s" | "5-7s" | "8-10s"][key]`` the mean over those seconds of the per-second
+        means (NaN if the records have none of them); ``overall[key]`` the mean over scenes of
+        each whole-rollout value (:data:`SCENE_KEYS`), except ``min_ttc``, whose median is
+        reported (it is ``inf`` for scenes without any projected conflict).
+    """
+    if not records:
+        raise ValueError("aggregate needs at least one scene record")
+    seconds = sorted({k for r in records for k in r["per_second"]}, key=float)
+    per_second = {
+        s: {
+            key: nan_mean([r["per_second"].get(s, {}).get(key, math.nan) for r in records])
+            for key in PER_SECOND_KEYS
+        }
+        for s in seconds
+    }
+    groups = {}
+    for name, secs in GROUPS.items():
+        present = [second_key(s) for s in secs if second_key(s) in per_second]
+        groups[name] = {
+            key: nan_mean([per_second[s][key] for s in present]) for key in PER_SECOND_KEYS
+        }
+    overall = {}
+    for key in SCENE_KEYS:
+        values = np.array([r.get(key, math.nan) for r in records], dtype=np.float64)
+        if key == "min_ttc":
+            values = values[~np.isnan(values)]
+            overall[key] = float(np.median(values)) if values.size else math.nan
+        else:
+            overall[key] = nan_mean(values)
+    return {
+        "num_scenes": len(records),
+        "per_second": per_second,
+        "groups": groups,
+        "overall": overall,
+    }
+
+
+def json_safe(obj):
+    """``obj`` with NaN and inf floats as None (JSON has neither), dicts and lists walked."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    return obj

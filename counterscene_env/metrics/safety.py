@@ -1,0 +1,272 @@
+"""Safety measures of a scene's rollout: collisions (CR), hard braking (HBR, signed and the
+paper's), time to collision and clearance."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from counterscene_env import geometry
+from counterscene_env.metrics.common import (
+    HARD_BRAKE_THRESHOLD,
+    REACH,
+    AccelerationSource,
+    adversary_index,
+    in_horizon,
+    rollout_slice,
+)
+from counterscene_env.scene.core import Scene
+
+
+def ego_collision_steps(scene: Scene) -> np.ndarray:
+    """``[T_roll]`` bool: at each rollout step, the ego's box overlaps another valid agent's.
+
+    This is the paper's CR event (oriented boxes from centroid, yaw and extent); every agent
+    type counts (pedestrians, cyclists, static objects), each masked by its own validity.
+    """
+    sl, e = rollout_slice(scene), scene.ego_index
+    pos, yaw, ok = scene.positions[:, sl], scene.yaws[:, sl], scene.valid[:, sl]
+    hit = geometry.boxes_overlap(
+        pos[e][None], yaw[e][None], scene.extents[e], pos, yaw, scene.extents[:, None]
+    )  # [N, T_roll]
+    hit &= ok & ok[e][None]
+    hit[e] = False
+    return hit.any(0)
+
+
+def ego_collided(scene: Scene, horizon: float | None = None) -> bool:
+    """Whether the ego collided at any rollout step within ``horizon`` s (None: whole rollout)."""
+    return bool((ego_collision_steps(scene) & in_horizon(scene, horizon)).any())
+
+
+def agent_overlaps(scene: Scene) -> np.ndarray:
+    """``[T_roll, N, N]`` bool: pairwise overlap of valid agents at each rollout step."""
+    sl = rollout_slice(scene)
+    return geometry.overlaps_over_time(
+        scene.positions[:, sl], scene.yaws[:, sl], scene.extents, scene.valid[:, sl]
+    )
+
+
+def any_collision(overlaps: np.ndarray, ego: int, include_ego: bool) -> np.ndarray:
+    if include_ego:
+        return overlaps.any((1, 2))
+    keep = np.ones(overlaps.shape[1], dtype=bool)
+    keep[ego] = False
+    return overlaps[:, keep][:, :, keep].any((1, 2))
+
+
+def agent_collision_steps(scene: Scene, include_ego: bool = True) -> np.ndarray:
+    """``[T_roll]`` bool: any pair of valid agents overlaps at that rollout step.
+
+    The traffic-realism view of collisions; ``include_ego=False`` scores only the traffic
+    among itself (what the world model alone is responsible for).
+    """
+    return any_collision(agent_overlaps(scene), scene.ego_index, include_ego)
+
+
+def ego_adversary_collision_steps(scene: Scene, adversary: int | str) -> np.ndarray:
+    """``[T_roll]`` bool: the ego's and the adversary's boxes overlap (both valid)."""
+    sl, e, a = rollout_slice(scene), scene.ego_index, adversary_index(scene, adversary)
+    rows = [e, a]
+    hit = geometry.boxes_overlap(
+        scene.positions[e, sl],
+        scene.yaws[e, sl],
+        scene.extents[e],
+        scene.positions[a, sl],
+        scene.yaws[a, sl],
+        scene.extents[a],
+    )
+    return hit & scene.valid[rows][:, sl].all(0)
+
+
+def _finite_difference_acceleration(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's finite differences over the rollout positions.
+
+    ``v_t = (p_{t+1} - p_t) / dt``, ``a_t = (v_{t+1} - v_t) / dt`` (appendix HBR equation),
+    with ``a_t`` stored at rollout step t (it reads steps t, t+1, t+2).
+
+    Returns:
+        ``[N, T_roll, 2]`` m/s^2 (NaN where undefined) and ``[N, T_roll]`` bool validity.
+    """
+    sl = rollout_slice(scene)
+    p, ok = scene.positions[:, sl], scene.valid[:, sl]
+    n, t = ok.shape
+    acc = np.full((n, t, 2), np.nan)
+    valid = np.zeros((n, t), dtype=bool)
+    if t >= 3:
+        acc[:, :-2] = (p[:, 2:] - 2.0 * p[:, 1:-1] + p[:, :-2]) / scene.dt**2
+        valid[:, :-2] = ok[:, :-2] & ok[:, 1:-1] & ok[:, 2:]
+    acc[~valid] = np.nan
+    return acc, valid
+
+
+def _moving_average(x: np.ndarray, valid: np.ndarray, window: int) -> np.ndarray:
+    """Centred moving average along the last axis over valid samples only (``[..., T]``)."""
+    k = window // 2
+    vals = np.where(valid, x, 0.0)
+    pad = [(0, 0)] * (x.ndim - 1) + [(k + 1, k)]
+    csum = np.cumsum(np.pad(vals, pad), axis=-1)
+    ccnt = np.cumsum(np.pad(valid.astype(np.float64), pad), axis=-1)
+    total = csum[..., 2 * k + 1 :] - csum[..., : -2 * k - 1]
+    count = ccnt[..., 2 * k + 1 :] - ccnt[..., : -2 * k - 1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = total / count
+    return np.where(valid, out, np.nan)
+
+
+def longitudinal_acceleration(
+    scene: Scene, source: AccelerationSource = "position", smooth: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Signed longitudinal acceleration of every agent over the rollout.
+
+    Args:
+        scene: the (simulated) scene.
+        source: ``"position"``: the paper's finite differences of positions, projected with
+            sign on the heading, ``a_lon,t = a_t . (cos psi_t, sin psi_t)`` (negative = braking,
+            whatever the direction of travel); ``"speed"``: ``(s_{t+1} - s_t) / dt`` of the
+            signed speed.
+        smooth: s, width of a centred moving average over the valid samples of the signal
+            (``round(smooth / dt)`` samples, rounded up to an odd count; 0: none). The nuScenes
+            10 Hz logs interpolate 2 Hz labels, whose second differences spike at the knots;
+            about 0.5 s removes that. Near a horizon's end the average reads up to half a
+            window past it.
+
+    Returns:
+        ``[N, T_roll]`` m/s^2 (NaN where undefined) and ``[N, T_roll]`` bool, valid where every
+        step the sample reads (t .. t+2 for positions, t .. t+1 for speeds) is valid.
+    """
+    if source == "position":
+        acc_vec, valid = _finite_difference_acceleration(scene)
+        yaw = scene.yaws[:, rollout_slice(scene)]
+        acc = acc_vec[..., 0] * np.cos(yaw) + acc_vec[..., 1] * np.sin(yaw)
+    elif source == "speed":
+        sl = rollout_slice(scene)
+        s, ok = scene.speeds[:, sl], scene.valid[:, sl]
+        acc = np.full(s.shape, np.nan)
+        valid = np.zeros(s.shape, dtype=bool)
+        if s.shape[1] >= 2:
+            acc[:, :-1] = (s[:, 1:] - s[:, :-1]) / scene.dt
+            valid[:, :-1] = ok[:, 1:] & ok[:, :-1]
+    else:
+        raise ValueError(f"source must be 'position' or 'speed', got {source!r}")
+    window = round(float(smooth) / scene.dt)
+    if window > 1:
+        acc = _moving_average(acc, valid, window)
+    acc = np.where(valid, acc, np.nan)
+    return acc, valid
+
+
+def hard_braking_flags(
+    scene: Scene, horizon: float | None, source: AccelerationSource, smooth: float, threshold
+) -> tuple[np.ndarray, np.ndarray]:
+    """``[N, T_roll]`` hard-braking flags and the sample mask within the horizon."""
+    acc, valid = longitudinal_acceleration(scene, source, smooth)
+    mask = valid & in_horizon(scene, horizon, REACH[source])[None]
+    return (acc < threshold) & mask, mask
+
+
+def hbr_ego(
+    scene: Scene,
+    horizon: float | None = None,
+    source: AccelerationSource = "position",
+    smooth: float = 0.0,
+    threshold: float = HARD_BRAKE_THRESHOLD,
+) -> float:
+    """1.0 if the ego brakes harder than ``threshold`` m/s^2 at any sample within the horizon.
+
+    The stress-test signal: did the scenario force the ego into an emergency stop. NaN if the
+    ego has no valid acceleration sample within the horizon.
+    """
+    return hbr_ego_of(*hard_braking_flags(scene, horizon, source, smooth, threshold), scene)
+
+
+def hbr_all(
+    scene: Scene,
+    horizon: float | None = None,
+    source: AccelerationSource = "position",
+    smooth: float = 0.0,
+    threshold: float = HARD_BRAKE_THRESHOLD,
+) -> float:
+    """Fraction of valid acceleration samples of vehicles (ego included) that brake hard.
+
+    The traffic view, normalised as the paper's per-scene HBR (samples, not agents). NaN if no
+    vehicle has a valid sample within the horizon.
+    """
+    return hbr_all_of(*hard_braking_flags(scene, horizon, source, smooth, threshold), scene)
+
+
+def hbr_ego_of(flags: np.ndarray, mask: np.ndarray, scene: Scene) -> float:
+    e = scene.ego_index
+    return float(flags[e].any()) if mask[e].any() else math.nan
+
+
+def hbr_all_of(flags: np.ndarray, mask: np.ndarray, scene: Scene) -> float:
+    veh = scene.vehicle_mask
+    n = mask[veh].sum()
+    return float(flags[veh].sum() / n) if n else math.nan
+
+
+def hbr_paper(
+    scene: Scene, horizon: float | None = None, threshold: float = HARD_BRAKE_THRESHOLD
+) -> float:
+    """The paper's HBR formula, verbatim. PHYSICALLY WRONG: kept only to compare with the paper.
+
+    ``a_lon,t = ||a_t||_2 cos(psi_t)`` with the appendix finite differences, hard braking where
+    ``a_lon,t < threshold``; rate = flagged samples over all agents / valid acceleration samples
+    over all agents. The magnitude has no sign and ``cos`` of the *world* yaw only says whether
+    the car points east or west: it flags any strong acceleration (braking or speeding up) of a
+    westbound car and never flags an eastbound one. Use :func:`hbr_ego` / :func:`hbr_all`.
+    """
+    acc_vec, valid = _finite_difference_acceleration(scene)
+    valid = valid & in_horizon(scene, horizon, REACH["position"])[None]
+    yaw = scene.yaws[:, rollout_slice(scene)]
+    a_lon = np.linalg.norm(acc_vec, axis=-1) * np.cos(yaw)
+    n = valid.sum()
+    return float(((a_lon < threshold) & valid).sum() / n) if n else math.nan
+
+
+def min_ttc_ego(scene: Scene, horizon: float = 10.0, step: float = 0.1) -> float:
+    """Smallest constant-velocity TTC, s, of the ego against any other agent over the rollout.
+
+    At every rollout step where the ego is valid, each other valid agent is projected at its
+    current velocity with its heading held (:func:`geometry.box_time_to_collision`, horizon
+    ``horizon`` s at resolution ``step`` s). 0 while overlapping; ``inf`` if never.
+    """
+    sl, e = rollout_slice(scene), scene.ego_index
+    pos, yaw, ok = scene.positions[:, sl], scene.yaws[:, sl], scene.valid[:, sl]
+    vel = scene.velocities[:, sl]
+    ttc = geometry.box_time_to_collision(
+        pos[e][None],
+        vel[e][None],
+        yaw[e][None],
+        scene.extents[e],
+        pos,
+        vel,
+        yaw,
+        scene.extents[:, None],
+        horizon=horizon,
+        step=step,
+    )  # [N, T_roll]
+    mask = ok & ok[e][None]
+    mask[e] = False
+    ttc = ttc[mask]
+    return float(ttc.min()) if ttc.size else math.inf
+
+
+def min_clearance(scene: Scene, adversary: int | str) -> float:
+    """Smallest box-to-box distance, m, between ego and adversary over rollout steps where both
+    are valid (0 once they touch); NaN if there are none."""
+    sl, e, a = rollout_slice(scene), scene.ego_index, adversary_index(scene, adversary)
+    both = scene.valid[e, sl] & scene.valid[a, sl]
+    if not both.any():
+        return math.nan
+    d = geometry.box_distance(
+        scene.positions[e, sl][both],
+        scene.yaws[e, sl][both],
+        scene.extents[e],
+        scene.positions[a, sl][both],
+        scene.yaws[a, sl][both],
+        scene.extents[a],
+    )
+    return float(d.min())
