@@ -149,21 +149,6 @@ def choice_field(choices: type[Choice], default: Choice | str | None) -> Any:
     return dataclasses.field(default=value, metadata={"choices": choices})
 
 
-def check_choices(obj: Any) -> None:
-    """Store every choice field of dataclass ``obj`` as its plain string (frozen or not).
-
-    Raises:
-        ValueError: a value that is not one of its field's choices (None passes where the
-            field's default is None).
-    """
-    for f in dataclasses.fields(obj):
-        choices = f.metadata.get("choices")
-        value = getattr(obj, f.name)
-        if choices is None or (value is None and f.default is None):
-            continue
-        object.__setattr__(obj, f.name, choices.parse(value, f.name))
-
-
 def describe_value(value: Any) -> str:
     return f"got {value!r} ({type(value).__name__})"
 

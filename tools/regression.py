@@ -18,7 +18,8 @@ before and after a change::
 - ``counterscene evaluate-model --json`` on 10 generated intersection scenes.
 
 ``compare`` prints each difference (file, key path, before, after) and exits 1 if there is any.
-Timing fields (:data:`TIMING_KEYS`) are left out of the comparison.
+Timing fields (:data:`TIMING_KEYS`) are left out of the comparison; ``--ignore-additions``
+also leaves out files and keys that only the new code writes (fields added on purpose).
 """
 
 from __future__ import annotations
@@ -123,17 +124,18 @@ def _load(path: Path) -> list:
     return [json.loads(text)]
 
 
-def diff(a, b, where: str = "") -> list[str]:
-    """Differences between two JSON values, timing keys left out."""
+def diff(a, b, where: str = "", additions: bool = True) -> list[str]:
+    """Differences between two JSON values, timing keys left out (``additions=False``: keys
+    only in ``b`` too, for a change that adds fields on purpose)."""
     if isinstance(a, dict) and isinstance(b, dict):
         out = []
         for k in sorted(set(a) | set(b)):
-            if k in TIMING_KEYS:
+            if k in TIMING_KEYS or (k not in a and not additions):
                 continue
             if k not in a or k not in b:
                 out.append(f"{where}.{k}: only in {'after' if k in b else 'before'}")
             else:
-                out += diff(a[k], b[k], f"{where}.{k}")
+                out += diff(a[k], b[k], f"{where}.{k}", additions)
         return out
     if isinstance(a, list) and isinstance(b, list):
         if len(a) != len(b):
@@ -141,7 +143,7 @@ def diff(a, b, where: str = "") -> list[str]:
         return [
             d
             for i, (x, y) in enumerate(zip(a, b, strict=True))
-            for d in diff(x, y, f"{where}[{i}]")
+            for d in diff(x, y, f"{where}[{i}]", additions)
         ]
     same = a == b or (
         isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b)
@@ -149,15 +151,18 @@ def diff(a, b, where: str = "") -> list[str]:
     return [] if same else [f"{where}: {a!r} != {b!r}"]
 
 
-def compare(before: Path, after: Path) -> int:
+def compare(before: Path, after: Path, additions: bool = True) -> int:
     names = sorted(set(_files(before)) | set(_files(after)))
     problems = 0
     for name in names:
+        if not (before / name).exists() and not additions:
+            print(f"{name}: only in after (an addition, ignored)")
+            continue
         if not (before / name).exists() or not (after / name).exists():
             print(f"{name}: only in {'after' if (after / name).exists() else 'before'}")
             problems += 1
             continue
-        found = diff(_load(before / name), _load(after / name))
+        found = diff(_load(before / name), _load(after / name), additions=additions)
         print(f"{name}: {'identical' if not found else f'{len(found)} differences'}")
         for line in found[:20]:
             print(f"  {line}")
@@ -175,11 +180,16 @@ def main() -> int:
     cmp_ = sub.add_parser("compare", help="compare two recordings")
     cmp_.add_argument("before", type=Path)
     cmp_.add_argument("after", type=Path)
+    cmp_.add_argument(
+        "--ignore-additions",
+        action="store_true",
+        help="ignore files and keys only in AFTER (a change that adds outputs on purpose)",
+    )
     args = parser.parse_args()
     if args.command == "record":
         record(args.out, args.episodes)
         return 0
-    return compare(args.before, args.after)
+    return compare(args.before, args.after, additions=not args.ignore_additions)
 
 
 if __name__ == "__main__":

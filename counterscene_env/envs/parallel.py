@@ -16,6 +16,7 @@ every remaining ego is truncated. Observations are per agent, rewards are each e
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import numpy as np
@@ -108,10 +109,10 @@ class CounterSceneParallelEnv(ParallelEnv):
     def reset(
         self, seed: int | None = None, options: dict | None = None
     ) -> tuple[dict[str, Any], dict[str, dict]]:
-        fixed = sorted(
-            {"observation", "action", "controlled_vehicles"}
-            & set((options or {}).get("config", {}))
-        )
+        update = (options or {}).get("config", {})
+        if not isinstance(update, Mapping):
+            raise TypeError(f"options['config'] must be a dict of config keys, got {update!r}")
+        fixed = sorted({"observation", "action", "controlled_vehicles"} & set(update))
         if fixed:
             raise ValueError(
                 f"reset cannot change {fixed} of a parallel env (its spaces are fixed): make a "

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from counterscene_env.config import LaneAnchors, check_choices, choice_field
+from counterscene_env.config import LaneAnchors, check_fields, choice_field
 from counterscene_env.geometry import arc_length, to_frame, wrap_angle
 from counterscene_env.scene.core import Scene
 
@@ -94,7 +94,7 @@ class WindowConfig:
     lane_anchors: str = choice_field(LaneAnchors, LaneAnchors.EGO)
 
     def __post_init__(self) -> None:
-        check_choices(self)
+        check_fields(self)
 
 
 def make_window(
