@@ -3,7 +3,8 @@ random invalid configs and actions are refused with the key named and change not
 mutations of scene files load or are refused with a clear error, never a traceback.
 
 Two profiles: ``ci`` (the default, a short run inside the test command) and ``long``
-(``COUNTERSCENE_FUZZ=long``; ``COUNTERSCENE_FUZZ_EXAMPLES`` sets its examples per test).
+(``COUNTERSCENE_FUZZ=long``; ``COUNTERSCENE_FUZZ_EXAMPLES`` sets its examples per test, a
+twentieth of them for the test that plays whole episodes).
 ``COUNTERSCENE_FUZZ_REPORT=PATH`` writes what was tried (configs, env steps, actions, file
 mutations, refusals) as JSON at the end.
 """
@@ -46,6 +47,8 @@ settings.register_profile(
     suppress_health_check=list(HealthCheck),
 )
 PROFILE = settings.get_profile("long" if LONG else "ci")
+# Whole episodes cost seconds where the other examples cost milliseconds: a twentieth of them.
+EPISODES = settings(PROFILE, max_examples=max(PROFILE.max_examples // 20, 1) if LONG else 6)
 STEPS = 60 if LONG else 6  # env steps per valid-config example
 STATS: Counter = Counter()
 INFO_KEYS = {"collision", "hard_braking", "off_road", "min_ttc", "adversary", "fallback"}
@@ -112,7 +115,7 @@ valid_updates = st.fixed_dictionaries(
 )
 
 
-@PROFILE
+@EPISODES
 @given(update=valid_updates, seed=st.integers(0, 2**31 - 1))
 def test_random_valid_configs_and_actions_keep_every_promise(shard, update, seed):
     if update["observation"]["type"] == "TimeToCollision":
