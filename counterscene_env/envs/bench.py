@@ -33,7 +33,6 @@ def bench_env(
     if threads:
         torch.set_num_threads(threads)
     env = CounterSceneEnv(config=config)
-    env.action_space.seed(seed)
     if policy not in ("random", "hold"):
         raise ValueError(f"policy must be 'random' or 'hold', got {policy!r}")
     if policy == "hold":
@@ -44,6 +43,7 @@ def bench_env(
             hold = np.zeros(space.shape, space.dtype)
         else:
             hold = env.action_type.actions_indexes["IDLE"]
+    rng = np.random.default_rng(seed)
     reset_times, step_times = [], []
     replan = 0.0
     start = time.perf_counter()
@@ -53,7 +53,14 @@ def bench_env(
     episodes = 1
     for _ in range(steps):
         t = time.perf_counter()
-        action = env.action_space.sample() if policy == "random" else hold
+        if policy == "random":
+            # Seeded from the run's generator at every step: each reset builds a new action
+            # space (highway-env), so seeding the space once would leave later episodes
+            # unseeded.
+            env.action_space.seed(int(rng.integers(2**31)))
+            action = env.action_space.sample()
+        else:
+            action = hold
         _, _, terminated, truncated, _ = env.step(action)
         step_times.append(time.perf_counter() - t)
         if terminated or truncated:
