@@ -30,7 +30,7 @@ from counterscene_env.sim.config import SimConfig
 from counterscene_env.sim.realism import plan_cost
 from counterscene_env.sim.state import Episode, ModelWindow
 from counterscene_env.sim.traffic import IDMLaneFollower
-from counterscene_env.world_model.model import WorldModel
+from counterscene_env.world_model.model import GuidanceHook, Prediction, WorldModel
 from counterscene_env.world_model.window import collate, make_window
 
 
@@ -206,7 +206,7 @@ class Replanner:
 
     def _sample(
         self, eps: Sequence[Episode], owner: list[int], windows: list[ModelWindow]
-    ) -> tuple[object, np.ndarray]:
+    ) -> tuple[Prediction, np.ndarray]:
         """One guided sampling call for every window; returns the model's prediction and the
         ``[W]`` index of the sample kept per window."""
         c, g = self.config, self.guidance
@@ -241,7 +241,12 @@ class Replanner:
         return pred, best
 
     def choose(
-        self, batch, pred, hook, adv_rows: list[int], ego_rows: list[list[int]]
+        self,
+        batch: dict[str, torch.Tensor],
+        pred: Prediction,
+        hook: GuidanceHook | None,
+        adv_rows: list[int],
+        ego_rows: list[list[int]],
     ) -> torch.Tensor:
         """``[W]`` best sample per window: lowest guidance loss plus ``realism_weight`` times
         the realism cost of everyone but the egos (whose plans are never executed) and the
@@ -265,7 +270,9 @@ class Replanner:
             ).reshape(W, S)
         return cost.argmin(-1)
 
-    def _egos_held(self, batch, pred, ego_rows: list[list[int]]) -> torch.Tensor:
+    def _egos_held(
+        self, batch: dict[str, torch.Tensor], pred: Prediction, ego_rows: list[list[int]]
+    ) -> torch.Tensor:
         """``[W S, K, F, 4]`` the samples with each ego held at its current speed and course.
 
         The ego's future is its policy's, not the model's guess: agents are scored against
