@@ -11,7 +11,8 @@ Everything that decides how a non-ego agent moves lives here:
   adversary selection at replans;
 - ``motion.py``: who moves how each step; ``yielding.py`` and ``road_keeping.py``: the
   reflexes of ordinary traffic; ``realism.py``: the realism cost of samples;
-- ``traffic.py``: the IDM lane follower for agents that left the model's view.
+- ``traffic.py``: the IDM lane follower for agents that left the model's view;
+- ``memory.py``: a replan's memory, estimated before it runs (``memory_limit_gb``).
 """
 
 __all__ = [
