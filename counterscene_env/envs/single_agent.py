@@ -180,7 +180,9 @@ class CounterSceneEnv(AbstractEnv):
         # A copy: later changes to the caller's (nested) dicts do not reach the env.
         candidate = {**self.config, **copy.deepcopy(dict(config))}
         validate(candidate, self)
-        source = SceneSource(candidate["scenario"])  # raises on an unknown scenario
+        source = self._source
+        if source is None or candidate["scenario"] != self.config["scenario"]:
+            source = SceneSource(candidate["scenario"])  # raises on an unknown scenario
         model = load_world_model(candidate["model"])
         sim = SimConfig.from_mapping(sim_settings(candidate))
         windows = max(sim.max_windows, candidate["controlled_vehicles"])
