@@ -105,7 +105,10 @@ class CounterSceneEnv(AbstractEnv):
     ``scenario_id``.
 
     **Arguments.** ``gym.make("CounterScene-v0", config={...}, render_mode=None |
-    "rgb_array" | "human")``; every key of :meth:`default_config` (unknown keys raise).
+    "rgb_array" | "human")``; every key of :meth:`default_config`: highway-env's, the scene
+    and reward keys, and every ``SimConfig`` field. Unknown keys raise; every value is checked
+    by type and range before it is applied (``TypeError`` / ``ValueError`` naming the key),
+    and a refused ``configure``, ``reset`` or ``step`` leaves the env as it was.
 
     **Version history.** v0: first release.
     """
