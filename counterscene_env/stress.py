@@ -125,7 +125,8 @@ class EpisodeLog:
         dropped (and removed from the file)."""
         if not self.path.is_file():
             return []
-        lines = self.path.read_text().splitlines()
+        text = self.path.read_text()
+        lines = text.splitlines()
         records = []
         for n, line in enumerate(lines):
             try:
@@ -133,7 +134,9 @@ class EpisodeLog:
             except json.JSONDecodeError:
                 if n != len(lines) - 1:
                     raise ValueError(f"{self.path}: line {n + 1} is not JSON") from None
-                self.path.write_text("".join(f"{x}\n" for x in lines[:-1]))
+        if text and (len(records) < len(lines) or not text.endswith("\n")):
+            # A kill mid-line: keep the whole records, each ended, so appends start afresh.
+            self.path.write_text("".join(f"{x}\n" for x in lines[: len(records)]))
         for i, rec in enumerate(records):
             if rec.get("episode") != i:
                 raise ValueError(f"{self.path}: line {i + 1} is not episode {i}")

@@ -169,3 +169,15 @@ def test_a_killed_stress_process_loses_no_finished_episode(shard, tmp_path):
     whole = (tmp_path / "whole" / "episodes.jsonl").read_text().splitlines()
     assert resumed[: len(kept) - 1] == kept[: len(kept) - 1]  # finished ones untouched
     assert [_without_timings(x) for x in resumed] == [_without_timings(x) for x in whole]
+
+
+def test_a_log_whose_last_line_lost_its_newline_appends_on_a_new_line(tmp_path):
+    from counterscene_env.stress import EpisodeLog
+
+    (tmp_path / "run.json").write_text('{"scenario": "merge"}')
+    (tmp_path / "episodes.jsonl").write_text('{"episode": 0}\n{"episode": 1}')
+    log = EpisodeLog(tmp_path, {"scenario": "merge"})
+    assert [r["episode"] for r in log.records] == [0, 1]
+    log.append([{"episode": 2}])
+    lines = (tmp_path / "episodes.jsonl").read_text().splitlines()
+    assert [json.loads(x)["episode"] for x in lines] == [0, 1, 2]
