@@ -27,8 +27,8 @@ from hypothesis import strategies as st
 from test_reliability import snapshot
 
 from counterscene_env.config import GuidancePreset, Sampler, SelectionSource, Selector
-from counterscene_env.envs.config import KINEMATIC_FEATURES
 from counterscene_env.envs.single_agent import CounterSceneEnv
+from counterscene_env.envs.spaces import KINEMATIC_FEATURES
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -12,6 +12,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from counterscene_env.config import check_bool, check_int, check_real, defaults, describe_value
+from counterscene_env.envs.spaces import KINEMATIC_FEATURES
 from counterscene_env.sim.config import SimConfig
 
 #: Keys of highway-env's base config that mean nothing here (the traffic is the world model).
@@ -82,22 +83,6 @@ OBSERVATION_TYPES = (
     "ExitObservation",
 )
 ACTION_TYPES = ("ContinuousAction", "DiscreteAction", "DiscreteMetaAction", "MultiAgentAction")
-#: Features a ``Kinematics`` observation can read (highway-env's ``Vehicle.to_dict``).
-KINEMATIC_FEATURES = (
-    "presence",
-    "x",
-    "y",
-    "vx",
-    "vy",
-    "heading",
-    "cos_h",
-    "sin_h",
-    "cos_d",
-    "sin_d",
-    "long_off",
-    "lat_off",
-    "ang_off",
-)
 _BOOL_KEYS = (
     "terminate_on_collision",
     "terminate_on_off_road",

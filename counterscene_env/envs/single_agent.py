@@ -46,17 +46,7 @@ from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import SceneSource
 from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.sim.memory import check_replan_memory
-
-_MODELS: dict[str, Any] = {}
-
-
-def load_world_model(name: str):
-    """The world model of a config's ``model`` key, loaded once per process (read-only)."""
-    from counterscene_env.world_model import load_model
-
-    if name not in _MODELS:
-        _MODELS[name] = load_model(name)
-    return _MODELS[name]
+from counterscene_env.world_model.checkpoint import shared_model
 
 
 class CounterSceneEnv(AbstractEnv):
@@ -186,7 +176,7 @@ class CounterSceneEnv(AbstractEnv):
         source = self._source
         if source is None or candidate["scenario"] != self.config["scenario"]:
             source = SceneSource(candidate["scenario"])  # raises on an unknown scenario
-        model = load_world_model(candidate["model"])
+        model = shared_model(candidate["model"])
         sim = SimConfig.from_mapping(sim_settings(candidate))
         windows = max(sim.max_windows, candidate["controlled_vehicles"])
         check_replan_memory(model.config, sim.num_samples, windows, sim.memory_limit_gb)
@@ -197,9 +187,8 @@ class CounterSceneEnv(AbstractEnv):
         feature is normalised and clipped there (highway-env declares (-inf, inf)), and its
         observations kept to ``vehicles_count`` rows (:class:`RowCappedKinematics`)."""
         super().define_spaces()
-        for t in getattr(
-            self.observation_type, "agents_observation_types", [self.observation_type]
-        ):
+        per_ego = getattr(self.observation_type, "agents_observation_types", None)
+        for t in per_ego or [self.observation_type]:
             if type(t) is KinematicObservation:
                 t.__class__ = RowCappedKinematics
         obs = self.config["observation"]
@@ -208,19 +197,12 @@ class CounterSceneEnv(AbstractEnv):
             obs.get("type") == "Kinematics"
             and set(obs.get("features", KinematicObservation.FEATURES)) <= LANE_FREE_FEATURES
         )
-        if isinstance(self.observation_space, spaces.Tuple):
-            self.observation_space = spaces.Tuple(
-                [
-                    bounded_space(space, t)
-                    for space, t in zip(
-                        self.observation_space.spaces,
-                        self.observation_type.agents_observation_types,
-                        strict=True,
-                    )
-                ]
-            )
+        space = self.observation_space
+        if per_ego is None:
+            self.observation_space = bounded_space(space, self.observation_type)
         else:
-            self.observation_space = bounded_space(self.observation_space, self.observation_type)
+            bounded = [bounded_space(s, t) for s, t in zip(space.spaces, per_ego, strict=True)]
+            self.observation_space = spaces.Tuple(bounded)
 
     @property
     def sim_config(self) -> SimConfig:
@@ -262,7 +244,7 @@ class CounterSceneEnv(AbstractEnv):
         if scene is None:
             scene = self._source.draw(self.np_random)
         egos = pick_egos(scene, config["controlled_vehicles"])
-        model = load_world_model(config["model"])
+        model = shared_model(config["model"])
         sim = self.sim_config
         if self.loop is None or self.loop.model is not model or self.loop.config != sim:
             self.loop = ClosedLoop(model, sim)

@@ -52,8 +52,8 @@ def _numbers(action: Any, who: str) -> np.ndarray:
 
 #: Kinematics features in [-1, 1] by construction.
 UNIT_FEATURES = {"presence", "cos_h", "sin_h", "cos_d", "sin_d"}
-#: Kinematics features that need no lane of the observed vehicles.
-LANE_FREE_FEATURES = {
+#: Features a ``Kinematics`` observation can read (highway-env's ``Vehicle.to_dict``).
+KINEMATIC_FEATURES = (
     "presence",
     "x",
     "y",
@@ -64,7 +64,12 @@ LANE_FREE_FEATURES = {
     "sin_h",
     "cos_d",
     "sin_d",
-}
+    "long_off",
+    "lat_off",
+    "ang_off",
+)
+#: Kinematics features that need no lane of the observed vehicles (all but the lane offsets).
+LANE_FREE_FEATURES = frozenset(KINEMATIC_FEATURES) - {"long_off", "lat_off", "ang_off"}
 
 
 def bounded_space(space: spaces.Space, obs_type: Any) -> spaces.Space:

@@ -59,14 +59,9 @@ class SceneSource:
     """
 
     def __init__(self, spec: str | Sequence[str]) -> None:
-        specs = (
-            [spec]
-            if isinstance(spec, str)
-            else list(spec)
-            if isinstance(spec, list | tuple)
-            else []
-        )
-        if not specs or not all(isinstance(s, str) for s in specs):
+        specs = [spec] if isinstance(spec, str) else spec
+        listed = isinstance(specs, list | tuple) and len(specs) > 0
+        if not listed or not all(isinstance(s, str) for s in specs):
             raise ValueError(f"scenario must be a name, a path or a list of them, got {spec!r}")
         self.specs = [check_spec(s) for s in specs]
         self._cache: dict[str, list[Scene]] = {}

@@ -155,7 +155,7 @@ class Replanner:
             rows = item["rows"][item["rows"] >= 0]
             mine = [int(r) for r in rows if not claimed[r]]
             own = [] if adv is None or adv not in rows else [adv]
-            windows.append(_window(item, own + mine, ego=len(windows)))
+            windows.append(ModelWindow(item, own + mine, ego=len(windows)))
             claimed[mine] = True
             near = np.linalg.norm(pos[rows] - pos[ego], axis=-1) <= c.cover_radius
             covered[rows[near]] = True
@@ -172,7 +172,7 @@ class Replanner:
                 & ~covered[rows]
                 & (np.linalg.norm(pos[rows] - pos[centre], axis=-1) <= c.cover_radius)
             ]
-            windows.append(_window(item, [int(r) for r in mine], ego=-1))
+            windows.append(ModelWindow(item, [int(r) for r in mine], ego=-1))
             covered[mine] = True
             covered[centre] = True
         return windows
@@ -298,12 +298,6 @@ def simulated_scene(ep: Episode) -> Scene:
     valid = ep.valid.copy()
     valid[:, ep.t + 1 :] = False
     return ep.factual.replace(positions=ep.positions, yaws=ep.yaws, speeds=ep.speeds, valid=valid)
-
-
-def _window(item: dict, plan_rows: list[int], ego: int) -> ModelWindow:
-    return ModelWindow(
-        arrays=item, rows=item["rows"], origin=item["origin"], plan_rows=plan_rows, ego=ego
-    )
 
 
 def _apply_plan(ep: Episode, window: ModelWindow, chosen: np.ndarray, valid) -> None:

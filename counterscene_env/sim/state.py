@@ -167,18 +167,24 @@ class ModelWindow:
 
     Attributes:
         arrays: the model's input arrays (``world_model.window.make_window``: ``history``
-            ``[K, H, 4]``, ``map`` ``[M, P, 2]``, ...).
-        rows: ``[K]`` scene row of each window agent (-1: padding).
-        origin: ``[3]`` world x [m], y [m], yaw [rad] of the window's frame.
+            ``[K, H, 4]``, ``map`` ``[M, P, 2]``, ``rows``, ``origin``, ...).
         plan_rows: scene rows whose plans this window supplies.
         ego: which ego's window it is (index into ``Episode.egos``; -1: an extra window).
     """
 
     arrays: dict[str, Any]
-    rows: np.ndarray
-    origin: np.ndarray
     plan_rows: list[int]
     ego: int
+
+    @property
+    def rows(self) -> np.ndarray:
+        """``[K]`` scene row of each window agent (-1: padding)."""
+        return self.arrays["rows"]
+
+    @property
+    def origin(self) -> np.ndarray:
+        """``[3]`` world x [m], y [m], yaw [rad] of the window's frame."""
+        return self.arrays["origin"]
 
     def row_of(self, agent: int | None) -> int:
         """The window row of scene row ``agent`` (-1: not in the window, or None)."""

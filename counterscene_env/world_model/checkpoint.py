@@ -96,6 +96,16 @@ def read_config(directory: str | os.PathLike) -> dict[str, Any]:
     return meta
 
 
+_SHARED: dict[str, WorldModel] = {}
+
+
+def shared_model(name: str = "default") -> WorldModel:
+    """:func:`load_model`, once per process and name: the envs share one read-only model."""
+    if name not in _SHARED:
+        _SHARED[name] = load_model(name)
+    return _SHARED[name]
+
+
 def load_model(
     directory: str | os.PathLike | None = "default", device: str | torch.device = "cpu"
 ) -> WorldModel:

@@ -14,7 +14,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from counterscene_env.config import LaneAnchors, PredictionTarget, Sampler
+from counterscene_env.config import (
+    LaneAnchors,
+    PredictionTarget,
+    Sampler,
+    check_fields,
+    choice_field,
+)
 from counterscene_env.world_model.window import WindowConfig
 
 
@@ -84,7 +90,7 @@ class ModelConfig:
     lane_points: int = 10
     lane_segment_length: float = 20.0
     map_radius: float = 60.0
-    lane_anchors: str = "ego"
+    lane_anchors: str = choice_field(LaneAnchors, LaneAnchors.EGO)
     local_lanes: int = 0
     local_radius: float = 30.0
     d_model: int = 96
@@ -94,9 +100,9 @@ class ModelConfig:
     dropout: float = 0.0
     graph_dropout: float = 0.1
     causal_temporal: bool = False
-    prediction: str = "x0"
+    prediction: str = choice_field(PredictionTarget, PredictionTarget.X0)
     num_train_timesteps: int = 100
-    sampler: str = "ddim"
+    sampler: str = choice_field(Sampler, Sampler.DDIM)
     sampling_steps: int = 10
     eta: float = 1.0
     clip_sample: float = 5.0
@@ -107,16 +113,7 @@ class ModelConfig:
     dt: float = 0.1
 
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            value, kind = getattr(self, f.name), f.type
-            ok = {
-                "int": isinstance(value, int) and not isinstance(value, bool),
-                "float": isinstance(value, (int, float)) and not isinstance(value, bool),
-                "bool": isinstance(value, bool),
-                "str": isinstance(value, str),
-            }[kind]
-            if not ok:
-                raise ValueError(f"ModelConfig: {f.name} must be {kind}, got {value!r}")
+        check_fields(self)  # types, finite numbers and the choices, each naming its key
         checks = [
             (self.history_steps >= 1, "history_steps must be >= 1"),
             (self.future_steps >= 1, "future_steps must be >= 1"),
@@ -131,10 +128,6 @@ class ModelConfig:
                 "need num_lanes >= 1, lane_points >= 2",
             ),
             (
-                self.lane_anchors in LaneAnchors.values(),
-                f"lane_anchors must be one of {LaneAnchors.values()}, got {self.lane_anchors!r}",
-            ),
-            (
                 self.local_lanes >= 0 and self.local_radius > 0,
                 "need local_lanes >= 0 and local_radius > 0",
             ),
@@ -144,11 +137,6 @@ class ModelConfig:
                 "num_heads must divide d_model",
             ),
             (self.num_blocks >= 1, "num_blocks must be >= 1"),
-            (
-                self.prediction in PredictionTarget.values(),
-                f"prediction must be one of {PredictionTarget.values()}",
-            ),
-            (self.sampler in Sampler.values(), f"sampler must be one of {Sampler.values()}"),
             (
                 1 <= self.sampling_steps <= self.num_train_timesteps,
                 "sampling_steps must be in [1, num_train_timesteps]",
