@@ -86,6 +86,8 @@ class Scenario(Choice):
 
 #: Prefix of a ScenarioNet directory in a scenario spec (``scenarionet:DIR``).
 SCENARIONET_PREFIX = "scenarionet:"
+#: Prefix of a CommonRoad scenario directory or XML file in a scenario spec (``commonroad:DIR``).
+COMMONROAD_PREFIX = "commonroad:"
 
 
 class Selector(Choice):

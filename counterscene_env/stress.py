@@ -353,6 +353,7 @@ def summarize(records: Sequence[dict], config: StressConfig) -> dict:
         "cr_non_ego": overall["cr_non_ego"],
         "hbr_ego": overall["hbr_ego"],
         "orr": overall["orr"],
+        "orr_moving": overall["orr_moving"],
         "mean_min_ttc": float(finite.mean()) if finite.size else math.inf,
         "episodes_without_ttc_conflict": int((~np.isfinite(ttc)).sum()),
         "mean_min_clearance_adversary": overall["min_clearance_adversary"],

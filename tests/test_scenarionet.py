@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import os
 import pickle
+import re
 import subprocess
+from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +18,7 @@ import shapely
 
 from counterscene_env.scene import Scene, SceneError
 from counterscene_env.scene.scenarionet import (
+    DEFAULT_BOX,
     ScenarioNetError,
     UnsafePickleError,
     load_scenarionet,
@@ -149,9 +152,9 @@ def test_synthetic_scenario_loads_to_expected_scene(tmp_path):
     np.testing.assert_allclose(scene.extents[0], [4.08, 1.73])
     np.testing.assert_allclose(scene.extents[1], [4.5, 1.9])
     np.testing.assert_allclose(scene.extents[4], [0.4, 0.4])
-    assert scene.metadata["swapped_extents"] == ["ego"]
+    assert scene.metadata["repairs"] == {"ego": ["length and width swapped"]}
     assert scene.metadata["num_tracks"] == {"vehicle": 3, "pedestrian": 1, "cyclist": 0, "other": 1}
-    assert scene.metadata["dropped_tracks"] == 1
+    assert list(scene.metadata["dropped_tracks"]) == ["ghost"]
     assert scene.metadata["dataset"] == "unit-test"
     assert scene.metadata["source_file"] == "scene.pkl"
 
@@ -234,7 +237,7 @@ def test_20hz_is_subsampled_to_10hz(tmp_path):
     fast = load_scenarionet(_write(tmp_path, _scenario(dt=0.05, n=2 * T - 1), "fast.pkl"))
     assert fast.dt == pytest.approx(0.1)
     assert fast.num_steps == T
-    assert fast.metadata["subsample"] == 2
+    assert fast.metadata["source_dt"] == pytest.approx(0.05) and not fast.metadata["resampled"]
     np.testing.assert_allclose(fast.positions, ref.positions, atol=1e-9)
     np.testing.assert_array_equal(fast.valid, ref.valid)
     np.testing.assert_allclose(fast.speeds, ref.speeds)
@@ -245,10 +248,11 @@ def test_sample_rate_from_ts_and_bad_rates(tmp_path):
     del sd["metadata"]["sample_rate"]
     assert load_scenarionet(_write(tmp_path, sd, "ts.pkl")).num_steps == T
     sd = _scenario(dt=0.03)
-    with pytest.raises(ScenarioNetError, match="sample_rate"):
+    with pytest.raises(ScenarioNetError, match=r"metadata.ts gives a step of 0.03 s"):
         load_scenarionet(_write(tmp_path, sd, "odd.pkl"))
     sd = _scenario(dt=0.2)
-    with pytest.raises(ScenarioNetError, match="sample_rate"):
+    del sd["metadata"]["ts"]
+    with pytest.raises(ScenarioNetError, match="sample_rate gives a step of 0.2 s"):
         load_scenarionet(_write(tmp_path, sd, "slow.pkl"))
 
 
@@ -371,18 +375,21 @@ def test_missing_sdc_id(tmp_path):
         load_scenarionet(_write(tmp_path, sd))
 
 
-def test_bad_array_shapes(tmp_path):
+def test_a_malformed_track_is_dropped_with_its_reason_and_the_scene_loads(tmp_path):
+    for name, change, reason in [
+        ("veh_a", lambda st: st.update(position=np.zeros((T, 4))), r"position.*\(T, 2\|3\)"),
+        ("ped", lambda st: st.update(heading=np.zeros(T - 1)), "heading"),
+        ("cone", lambda st: st.pop("velocity"), "velocity"),
+    ]:
+        sd = _scenario()
+        change(sd["tracks"][name]["state"])
+        scene = load_scenarionet(_write(tmp_path, sd))
+        assert name not in scene.agent_ids.tolist()
+        assert re.search(reason, scene.metadata["dropped_tracks"][name])
+        assert scene.num_agents == 4
     sd = _scenario()
-    sd["tracks"]["veh_a"]["state"]["position"] = np.zeros((T, 4))
-    with pytest.raises(ScenarioNetError, match=r"veh_a.*position.*\(T, 2\|3\)"):
-        load_scenarionet(_write(tmp_path, sd))
-    sd = _scenario()
-    sd["tracks"]["ped"]["state"]["heading"] = np.zeros(T - 1)
-    with pytest.raises(ScenarioNetError, match=r"ped.*heading"):
-        load_scenarionet(_write(tmp_path, sd))
-    sd = _scenario()
-    del sd["tracks"]["cone"]["state"]["velocity"]
-    with pytest.raises(ScenarioNetError, match=r"cone.*velocity"):
+    sd["tracks"]["ego"]["state"]["position"] = np.zeros((T, 4))  # the ego cannot be dropped
+    with pytest.raises(ScenarioNetError, match=r"ego.*position"):
         load_scenarionet(_write(tmp_path, sd))
     sd = _scenario()
     sd["map_features"]["l1"]["polyline"] = np.zeros((5, 4))
@@ -395,8 +402,8 @@ def test_tracks_of_different_lengths(tmp_path):
     sd["tracks"]["cone"] = _track(
         "TRAFFIC_CONE", np.zeros((T + 1, 2)), (0, 0), 0, 1, 0.4, 0.4, T + 1
     )
-    with pytest.raises(ScenarioNetError, match=r"cone.*steps"):
-        load_scenarionet(_write(tmp_path, sd))
+    scene = load_scenarionet(_write(tmp_path, sd))
+    assert "steps" in scene.metadata["dropped_tracks"]["cone"]
 
 
 # ---------------------------------------------------------------------- review fixes
@@ -427,7 +434,131 @@ def test_a_corrupt_position_costs_its_samples_not_the_scene(tmp_path):
     track["position"] = np.asarray(track["position"], float).copy()
     track["position"][35, 0] += 1e12
     scene = load_scenarionet(_write(tmp_path, sd))
-    assert scene.metadata["repaired_tracks"] == {"veh_a": 1}
+    assert scene.metadata["repairs"]["veh_a"] == ["1 steps after an impossible jump made invalid"]
     row = list(scene.agent_ids).index("veh_a")
     assert not scene.valid[row, 35] and scene.valid[row, 34] and scene.valid[row, 36]
     assert np.abs(scene.positions).max() < 1e3
+
+
+# ---------------------------------------------------------------------- files as converters write them
+def test_float32_timestamps_are_resampled_onto_the_exact_grid(tmp_path):
+    """Waymo files: float32 ``ts`` with steps of 0.09994-0.10006 s and no ``sample_rate``."""
+    sd = _scenario()
+    del sd["metadata"]["sample_rate"]
+    jitter = np.random.default_rng(0).uniform(-6e-5, 6e-5, T)
+    jitter[0] = 0.0
+    ts = (np.arange(T) * 0.1 + jitter).astype(np.float32)
+    sd["metadata"]["ts"] = ts
+    # The ego moves at 10 m/s along x: its logged x is its true x at the jittered time.
+    sd["tracks"]["ego"]["state"]["position"][:, 0] = -5.0 + 10.0 * ts.astype(float)
+    scene = load_scenarionet(_write(tmp_path, sd))
+    assert scene.num_steps == T and scene.dt == 0.1 and scene.metadata["resampled"]
+    # Resampled at exactly k * 0.1 s: x = -5 + k (to float32 precision of the stamps).
+    np.testing.assert_allclose(scene.positions[0, :, 0], -5.0 + np.arange(T), atol=1e-4)
+    sd["metadata"]["ts"] = np.arange(T) * 0.13  # neither 0.1 s nor a fraction of it
+    with pytest.raises(ScenarioNetError, match=r"metadata.ts gives a step of 0.13 s"):
+        load_scenarionet(_write(tmp_path, sd))
+
+
+def test_flat_box_arrays_and_bad_boxes_are_repaired(tmp_path):
+    sd = _scenario()
+    ped = sd["tracks"]["ped"]["state"]
+    ped["length"], ped["width"] = np.zeros(T), np.full(T, np.nan)  # (T,), zero and NaN
+    veh = sd["tracks"]["veh_a"]["state"]
+    veh["length"] = np.full(T, 4.5)
+    veh["length"][:5] = 0.0  # a few zero sizes: the median of the good ones
+    scene = load_scenarionet(_write(tmp_path, sd))
+    rows = scene.agent_ids.tolist()
+    np.testing.assert_allclose(scene.extents[rows.index("ped")], DEFAULT_BOX["pedestrian"])
+    np.testing.assert_allclose(scene.extents[rows.index("veh_a")], [4.5, 1.9])
+    assert len(scene.metadata["repairs"]["ped"]) == 2
+    assert "veh_a" not in scene.metadata["repairs"]
+
+
+def test_nan_positions_at_valid_steps_are_made_invalid(tmp_path):
+    sd = _scenario()
+    sd["tracks"]["veh_a"]["state"]["position"][[3, 4], 0] = np.nan
+    sd["tracks"]["cone"]["state"]["position"][:, 1] = np.nan  # nothing left: dropped
+    scene = load_scenarionet(_write(tmp_path, sd))
+    row = scene.agent_ids.tolist().index("veh_a")
+    assert not scene.valid[row, 3:5].any() and scene.valid[row, 5]
+    assert "2 steps" in scene.metadata["repairs"]["veh_a"][0]
+    assert "no valid step" in scene.metadata["dropped_tracks"]["cone"]
+
+
+def test_defaultdicts_with_builtin_factories_load_and_other_factories_are_refused(tmp_path):
+    sd = _scenario()
+    counts = defaultdict(int, {"VEHICLE": 3})
+    sd["metadata"]["number_summary"] = {"num_moving_objects_each_type": counts}
+    sd["metadata"]["lists"] = defaultdict(list, {"a": [1]})
+    data = read_scenario_description(_write(tmp_path, sd))
+    assert data["metadata"]["number_summary"]["num_moving_objects_each_type"]["VEHICLE"] == 3
+    assert load_scenarionet(_write(tmp_path, sd)).num_agents == 5
+    sd["metadata"]["bad"] = defaultdict(set)
+    with pytest.raises(UnsafePickleError, match="builtins.set"):
+        read_scenario_description(_write(tmp_path, sd))
+
+
+def test_single_point_polylines_are_not_lanes_and_do_not_fail(tmp_path):
+    sd = _scenario()
+    sd["map_features"]["dot"] = {"type": "LANE_SURFACE_STREET", "polyline": np.array([1.0, 2, 0])}
+    sd["map_features"]["dot2"] = {"type": "ROAD_EDGE_BOUNDARY", "polyline": np.zeros((1, 3))}
+    sd["map_features"]["dot3"] = {"type": "ROAD_LINE_SOLID_SINGLE_WHITE", "polyline": [[0, 0]]}
+    scene = load_scenarionet(_write(tmp_path, sd))
+    assert len(scene.road.lane_centerlines) == 3
+
+
+# ---------------------------------------------------------------------- real maps
+def test_drivable_area_outlines_fill_even_odd_and_pieces_are_merged(tmp_path):
+    """nuScenes/nuPlan write the drivable area's rings as ``boundary_*`` solid white lines
+    (AV2 in 20-point pieces): the road beyond the lanes, islands excluded."""
+    sd = _scenario()
+    outer = np.array([[60, -40], [120, -40], [120, 20], [60, 20], [60, -40]], float)
+    island = np.array([[80, -20], [100, -20], [100, 0], [80, 0], [80, -20]], float)
+    sd["map_features"]["boundary_0"] = {"type": "ROAD_LINE_SOLID_SINGLE_WHITE", "polyline": outer}
+    sd["map_features"]["boundary_1"] = {"type": "ROAD_LINE_SOLID_SINGLE_WHITE", "polyline": island}
+    # a second area in two open pieces
+    sd["map_features"]["boundary_2"] = {
+        "type": "ROAD_LINE_SOLID_SINGLE_WHITE",
+        "polyline": np.array([[-50, 60], [-30, 60], [-30, 80]], float),
+    }
+    sd["map_features"]["boundary_3"] = {
+        "type": "ROAD_LINE_SOLID_SINGLE_WHITE",
+        "polyline": np.array([[-30, 80], [-50, 80], [-50, 60]], float),
+    }
+    sd["map_features"]["painted"] = {  # an ordinary painted line encloses nothing
+        "type": "ROAD_LINE_SOLID_SINGLE_WHITE",
+        "polyline": np.array([[0, -60], [20, -60], [20, -50], [0, -50], [0, -60]], float),
+    }
+    road = load_scenarionet(_write(tmp_path, sd)).road
+    assert not road.off_road(np.array([70.0, -30.0]))
+    assert road.off_road(np.array([90.0, -10.0]))  # the island
+    assert not road.off_road(np.array([-40.0, 70.0]))
+    assert road.off_road(np.array([10.0, -55.0]))
+
+
+def test_road_edges_pave_the_kerbside_on_the_lanes_side_only(tmp_path):
+    """Waymo: lanes are centre lines, the kerb a road edge 3 m beyond the lane's side."""
+    sd = _scenario()
+    # Lane l1 spans y in [-1.75, 1.75]; a kerb at y = -4.75, a crosswalk beyond it.
+    sd["map_features"]["kerb"] = {
+        "type": "ROAD_EDGE_BOUNDARY",
+        "polyline": np.stack([np.linspace(50, -10, 30), np.full(30, -4.75)], -1),
+    }
+    sd["map_features"]["walk"] = {
+        "type": "CROSSWALK",
+        "polygon": np.array([[0, -12], [40, -12], [40, -10], [0, -10]], float),
+    }
+    road = load_scenarionet(_write(tmp_path, sd)).road
+    assert not road.off_road(np.array([20.0, -4.0]))  # between lane and kerb: paved
+    assert road.off_road(np.array([20.0, -6.0]))  # beyond the kerb
+    del sd["map_features"]["kerb"]
+    plain = load_scenarionet(_write(tmp_path, sd, "plain.pkl")).road
+    assert plain.off_road(np.array([20.0, -4.0]))
+
+
+def test_beyond_the_map_crop_is_not_off_road(tmp_path):
+    road = load_scenarionet(_write(tmp_path, _scenario())).road
+    assert road.extent is not None
+    assert road.off_road(np.array([20.0, 20.0]))  # inside the crop, off the lanes
+    assert not road.off_road(np.array([500.0, 0.0]))  # beyond every map feature: unknown

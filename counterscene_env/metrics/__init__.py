@@ -42,6 +42,8 @@ from counterscene_env.metrics.realism import (
     displacement_steps,
     off_road_rate,
     off_road_steps,
+    parked_agents,
+    path_speeds,
 )
 from counterscene_env.metrics.report import (
     aggregate,
@@ -87,5 +89,7 @@ __all__ = [
     "min_ttc_ego",
     "off_road_rate",
     "off_road_steps",
+    "parked_agents",
+    "path_speeds",
     "rollout_steps",
 ]

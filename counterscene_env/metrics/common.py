@@ -28,6 +28,8 @@ SCENE_KEYS = (
     "hbr_all",
     "hbr_paper",
     "orr",
+    "orr_parked",
+    "orr_moving",
     "min_ttc",
     "min_clearance_adversary",
 )

@@ -7,22 +7,62 @@ import math
 
 import numpy as np
 
-from counterscene_env import geometry
 from counterscene_env.metrics.common import horizon_steps, in_horizon, nan_mean, rollout_slice
 from counterscene_env.scene.core import Scene
 
+#: An agent is parked if its speed stays below this at every valid step of the window, m/s.
+PARKED_SPEED = 0.5
+#: Speeds for the parked / moving split are read from positions over this window, s: the
+#: logged velocity of a short real track is noise (Waymo: 1-6 m/s for boxes that move 0.1 m).
+SPEED_WINDOW = 1.0
+
+
+def path_speeds(scene: Scene, window: float = SPEED_WINDOW) -> np.ndarray:
+    """``[N, T]`` m/s: distance between the farthest valid positions within ``window / 2``
+    before and after each step, over their time apart (the logged speed where an agent has
+    no other valid step that near). 0 at invalid steps."""
+    h = max(1, round(window / (2 * scene.dt)))
+    n, t = scene.valid.shape
+    idx = np.arange(t)
+    lo = np.broadcast_to(idx, (n, t)).copy()
+    hi = lo.copy()
+    for d in range(1, h + 1):  # later (farther) offsets overwrite nearer ones
+        back, ahead = np.maximum(idx - d, 0), np.minimum(idx + d, t - 1)
+        lo = np.where(scene.valid[:, back] & (idx - d >= 0), back, lo)
+        hi = np.where(scene.valid[:, ahead] & (idx + d < t), ahead, hi)
+    rows = np.arange(n)[:, None]
+    span = (hi - lo) * scene.dt
+    dist = np.linalg.norm(scene.positions[rows, hi] - scene.positions[rows, lo], axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        speed = np.where(span > 0, dist / span, np.abs(scene.speeds))
+    return np.where(scene.valid, speed, 0.0)
+
+
+def parked_agents(scene: Scene) -> np.ndarray:
+    """``[N]`` bool: agents whose :func:`path_speeds` stay under :data:`PARKED_SPEED` at every
+    valid step of the rollout window (agents with no valid step there count as parked)."""
+    sl = rollout_slice(scene)
+    fast = (path_speeds(scene)[:, sl] >= PARKED_SPEED) & scene.valid[:, sl]
+    return ~fast.any(axis=1)
+
 
 def off_road_steps(scene: Scene) -> np.ndarray:
-    """``[N, T_roll]`` bool: agent valid and its centre outside ``scene.road.drivable_area``."""
+    """``[N, T_roll]`` bool: agent valid and its centre off the road
+    (:meth:`RoadMap.off_road`: outside the drivable area, inside the map's extent)."""
     sl = rollout_slice(scene)
-    inside = geometry.points_in_area(scene.road.drivable_area, scene.positions[:, sl])
-    return ~inside & scene.valid[:, sl]
+    return scene.road.off_road(scene.positions[:, sl]) & scene.valid[:, sl]
 
 
 def off_road_rate_of(
-    scene: Scene, off: np.ndarray, horizon: float | None, include_ego: bool
+    scene: Scene,
+    off: np.ndarray,
+    horizon: float | None,
+    include_ego: bool,
+    rows: np.ndarray | None = None,
 ) -> float:
-    veh = scene.vehicle_mask.copy()
+    """ORR from precomputed :func:`off_road_steps`, over the vehicles among ``rows`` ([N] bool;
+    None: all)."""
+    veh = scene.vehicle_mask.copy() if rows is None else scene.vehicle_mask & rows
     if not include_ego:
         veh[scene.ego_index] = False
     mask = scene.valid[:, rollout_slice(scene)] & in_horizon(scene, horizon)[None] & veh[:, None]

@@ -25,6 +25,7 @@ from counterscene_env.metrics.realism import (
     non_ego_vehicles,
     off_road_rate_of,
     off_road_steps,
+    parked_agents,
 )
 from counterscene_env.metrics.safety import (
     agent_overlaps,
@@ -67,12 +68,15 @@ def evaluate_scene(
         ``per_second[str(h)]`` holds ``ADE``/``FDE`` (m), ``ORR``, ``HBR`` (= hbr_ego within h)
         and ``CR`` (ego collided at or before h) for each h, and the whole-rollout values are
         ``cr``, ``cr_all_agents``, ``cr_non_ego``, ``cr_ego_adversary``, ``hbr_ego``,
-        ``hbr_all``, ``hbr_paper``, ``orr`` (fractions), ``min_ttc`` (s) and
+        ``hbr_all``, ``hbr_paper``, ``orr`` (fractions; also split into ``orr_parked`` over the
+        vehicles parked for the whole rollout, :func:`parked_agents`, and ``orr_moving`` over
+        the others), ``min_ttc`` (s) and
         ``min_clearance_adversary`` (m).
     """
     ego_hits = ego_collision_steps(sim)
     overlaps = agent_overlaps(sim)
     off = off_road_steps(sim)
+    parked = parked_agents(sim)
     flags, mask = hard_braking_flags(sim, None, "position", smooth, HARD_BRAKE_THRESHOLD)
     e = sim.ego_index
     dist = ok = None
@@ -116,6 +120,8 @@ def evaluate_scene(
         "hbr_all": hbr_all_of(flags, mask, sim),
         "hbr_paper": hbr_paper(sim),
         "orr": off_road_rate_of(sim, off, None, include_ego=True),
+        "orr_parked": off_road_rate_of(sim, off, None, True, parked),
+        "orr_moving": off_road_rate_of(sim, off, None, True, ~parked),
         "min_ttc": min_ttc_ego(sim),
         "min_clearance_adversary": clearance,
     }

@@ -26,7 +26,7 @@ from highway_env.road.lane import (
 )
 from highway_env.road.road import RoadNetwork
 
-from counterscene_env.geometry import arc_length
+from counterscene_env.geometry import arc_length, points_in_area
 
 #: Spacing of the sampled centre lines and lane-surface outlines, m.
 SAMPLE_SPACING = 1.0
@@ -51,12 +51,15 @@ class RoadMap:
         drivable_area: shapely (Multi)Polygon, m, world frame.
         lane_centerlines: list of ``[P, 2]`` float64 arrays, m, in driving direction.
         lane_widths: ``[L]`` float64, m, one per centre line.
+        extent: shapely (Multi)Polygon, m: the region the map describes (a real map is a crop
+            of a city; beyond it nothing is known, road or not). None: the whole plane.
     """
 
     network: RoadNetwork
     drivable_area: shapely.Geometry
     lane_centerlines: list[np.ndarray]
     lane_widths: np.ndarray
+    extent: shapely.Geometry | None = None
 
     def __post_init__(self) -> None:
         self.lane_centerlines = [np.asarray(c, dtype=np.float64) for c in self.lane_centerlines]
@@ -79,8 +82,32 @@ class RoadMap:
                 "drivable_area must be a shapely Polygon or MultiPolygon, got "
                 f"{type(self.drivable_area).__name__}"
             )
+        if self.extent is not None and not isinstance(
+            self.extent, shapely.Polygon | shapely.MultiPolygon
+        ):
+            raise ValueError(f"extent must be a shapely Polygon or None, got {type(self.extent)}")
         # Point-in-area queries are the hot path of ORR: prepare the geometry once.
         shapely.prepare(self.drivable_area)
+        if self.extent is not None:
+            shapely.prepare(self.extent)
+
+    def off_road(self, points: np.ndarray) -> np.ndarray:
+        """Whether points are off the road: outside the drivable area, inside the map's extent.
+
+        The one definition of "off-road" (ORR, the step info, road keeping): a point beyond the
+        map's crop is not judged (docs/scenes.md, "Real maps").
+
+        Args:
+            points: ``[..., 2]`` m, world frame.
+
+        Returns:
+            ``[...]`` bool; False for non-finite points.
+        """
+        points = np.asarray(points, dtype=np.float64)
+        off = ~points_in_area(self.drivable_area, points) & np.isfinite(points).all(-1)
+        if self.extent is not None:
+            off &= points_in_area(self.extent, points)
+        return off
 
     @classmethod
     def from_network(

@@ -1,88 +1,64 @@
-"""Import one ScenarioNet scenario pickle (nuScenes, Waymo, ...) as a :class:`Scene`.
+"""Import one ScenarioNet scenario pickle (nuScenes, Waymo, nuPlan, Argoverse 2, Lyft) as a
+:class:`Scene`.
 
-One job: turn a ScenarioNet "scenario description" file into the scene contract
-(:class:`~counterscene_env.scene.core.Scene`), tracks and map included.
+One job: turn a ScenarioNet "scenario description" file, exactly as ScenarioNet's converters
+write it, into the scene contract (:class:`~counterscene_env.scene.core.Scene`). The file is
+unpickled by ``scene/safe_pickle.py`` (nothing in it can run code); its map becomes a
+:class:`RoadMap` in ``scene/scenarionet_map.py``.
 
-Safety policy
--------------
-The files are Python pickles, and unpickling an untrusted pickle can run arbitrary code. They
-are never read with the standard loader: :class:`_SafeUnpickler` resolves only the globals in
-:data:`ALLOWED_GLOBALS`, an exact ``(module, name)`` allowlist of numpy's data-only
-reconstruction helpers (``_reconstruct``, ``ndarray``, ``dtype``; ``scalar`` for numpy scalars
-and ``_frombuffer`` for protocol-5 arrays), each under both its numpy-1 (``numpy.core``) and
-numpy-2 (``numpy._core``) spelling. Every other global (``os.system``, ``builtins.eval``,
-``subprocess.Popen``, any class) raises :class:`UnsafePickleError` *before* anything is called,
-so nothing in a hostile file runs. Persistent ids are refused too, and the one Python-level
-helper (``_frombuffer``) is handed out sealed so that a BUILD opcode cannot rewrite its
-attributes for the whole process. The ten nuScenes-mini files (protocol 4) name exactly
-``numpy.core.multiarray._reconstruct``, ``numpy.ndarray`` and ``numpy.dtype`` (checked with
-``pickletools``); their dicts, lists, sets and tuples are pickle opcodes, so no ``builtins``
-name is allowed at all. Protocols 3 to 5 load; protocol 2 would need ``_codecs.encode`` for
-bytes and is refused. Unpickling can still allocate memory (a file may describe a huge array);
-it cannot execute code.
+Time base
+---------
+The step is read from ``metadata.ts`` (the timestamps of the frames) where it has one entry per
+frame, else from ``metadata.sample_rate`` (seconds per frame). A source step within
+:data:`STEP_TOLERANCE` (1 %) of 0.1 s or of an integer fraction of it (0.05 s, ...) is
+accepted: ScenarioNet's Waymo converter writes float32 timestamps whose steps are 0.09998 to
+0.10006 s. The tracks are then put on the exact 0.1 s grid from the first frame: by plain
+subsampling where the frames already lie on it (nuScenes, 20 Hz logs), else by linear
+interpolation between the two frames around each grid time (headings along the shorter arc);
+a grid step is valid where the frames it reads are.
 
 Tracks
 ------
 ``VEHICLE``/``PEDESTRIAN``/``CYCLIST`` map to ``"vehicle"``/``"pedestrian"``/``"cyclist"``;
 every other type (``TRAFFIC_CONE``, ``TRAFFIC_BARRIER``, ...) becomes ``"other"`` and is kept
-for collision checks. Tracks with no valid step are dropped. The ego (``metadata["sdc_id"]``)
-is row 0, the other tracks follow in file order. Speed is the norm of the logged velocity,
-negative where it points backwards relative to the heading (a reversing car)
-(m/s); extents are the median (length, width) over valid steps, and any vehicle whose length
-is below its width (the nuScenes ego box is stored as 1.73 x 4.08) gets the two swapped; the
-ids so fixed are listed in ``scene.metadata["swapped_extents"]``. Logs must be at 10 Hz or at
-an exact integer multiple of it (subsampled exactly, e.g. 20 Hz -> every 2nd frame).
+for collision checks. The ego (``metadata["sdc_id"]``) is row 0, the other tracks follow in
+file order. Speed is the norm of the logged velocity, negative where it points backwards
+relative to the heading (a reversing car) (m/s). Box arrays may be ``(T,)`` or ``(T, 1)``.
 
-Map choices
------------
-Lanes are the ``LANE_*`` features except ``LANE_BIKE_LANE``. Each becomes a highway-env
-``PolyLaneFixedWidth`` lane via :meth:`RoadMap.from_centerlines`. Width: the ``width`` field
-where present (an array is reduced to the median of its per-point total, left + right),
-else the lane polygon's area over the centre-line length, else 3.5 m; the first two are
-clipped to [2.5, 6] m. Connectivity: ``exit_lanes`` (and the reverse of ``entry_lanes``) where
-the file carries them; the nuScenes files carry neither, but their lanes and lane connectors
-meet at bit-identical end points, so without those fields a lane's successors are the lanes
-starting within :data:`CONNECT_TOLERANCE` of its end.
+One bad track never costs the scene. Each track is repaired where it can be, and every repair
+is listed in ``metadata["repairs"]`` (track id -> what was done):
 
-Drivable area: the union of the lane polygons (nuScenes lanes) and, for lanes without one
-(nuScenes lane connectors, which are what crosses the intersections), the centre line buffered
-by half the lane width. Beyond that only ``DRIVEWAY`` polygons (Waymo) are added. The nuScenes
-files contain no other drivable surface (their non-lane features are only ``ROAD_LINE_*``
-dividers, which lie inside the lanes; no road edges, road segments or intersection polygons),
-and ``ROAD_EDGE_*`` polylines elsewhere are open boundaries that do not close into reliable
-polygons, so they are not used. Interior holes of the union smaller than
-:data:`HOLE_FILL_AREA` (50 m^2) are filled: in the nuScenes files the ~520 holes under 10 m^2
-(and most up to ~40 m^2) are slivers between the lane polygons and the buffered connectors
-inside junctions, which traffic crosses (the logged ego left the unfilled area at some frames
-of scene-0757); larger holes are medians, gore areas, blocks and parking-lot islands with
-parked cars, which stay off the drivable area. Parking lots, and roads beyond the map crop,
-are not in the files at all, so parked and far vehicles legitimately lie outside the area.
+- a non-finite position, heading or velocity at a valid step: that step is made invalid;
+- a box dimension that is zero, negative or NaN at every valid step: the type's default from
+  :data:`DEFAULT_BOX` (a vehicle takes the median of its valid sizes where some are good);
+- a vehicle whose length is below its width (the nuScenes ego box is stored as 1.73 x 4.08):
+  the two are swapped;
+- a position that jumps faster than any road user: the lone sample, or the track outside its
+  longest consistent piece, is made invalid (``core.drop_impossible_jumps``).
+
+A track that cannot be repaired (no state dict, a missing or misshapen field, a length other
+than the ego's, no valid step left) is dropped, with the reason in
+``metadata["dropped_tracks"]`` (track id -> reason). Only a broken ego track fails the file.
 """
 
 from __future__ import annotations
 
 import os
-import pickle
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import shapely
 
 from counterscene_env.geometry import wrap_angle
 from counterscene_env.scene.core import DEFAULT_DT, Scene, SceneError, drop_impossible_jumps
-from counterscene_env.scene.road import RoadMap
-
-try:  # numpy >= 2 spelling first
-    from numpy._core.multiarray import _reconstruct, scalar
-    from numpy._core.numeric import _frombuffer
-except ImportError:  # pragma: no cover - older numpy
-    from numpy.core.multiarray import _reconstruct, scalar
-    from numpy.core.numeric import _frombuffer
+from counterscene_env.scene.safe_pickle import ALLOWED_GLOBALS, UnsafePickleError, safe_load
+from counterscene_env.scene.scenarionet_map import MapError, road_from_features
 
 __all__ = [
     "ALLOWED_GLOBALS",
+    "DEFAULT_BOX",
     "ScenarioNetError",
     "UnsafePickleError",
     "load_scenarionet",
@@ -95,67 +71,20 @@ class ScenarioNetError(SceneError):
     """A ScenarioNet file is malformed; the message names the file and the field."""
 
 
-class UnsafePickleError(SceneError):
-    """A pickle named a global outside :data:`ALLOWED_GLOBALS` (or a persistent id)."""
-
-
-class _Sealed:
-    """A callable stand-in for a Python-level helper that a pickle's BUILD opcode cannot alter.
-
-    Built-in functions and types reject attribute writes by themselves; a plain Python function
-    does not (BUILD could rewrite numpy's own ``_frombuffer.__defaults__`` for the whole
-    process), so such helpers are handed out behind this wrapper instead.
-    """
-
-    __slots__ = ("_fn",)
-
-    def __init__(self, fn: Any) -> None:
-        object.__setattr__(self, "_fn", fn)
-
-    def __call__(self, *args: Any) -> Any:
-        return self._fn(*args)
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        raise UnsafePickleError(f"refused attribute write {name!r} on an allowed global")
-
-
-#: The only globals a ScenarioNet pickle may name: ``(module, name)`` -> object. All of them
-#: build numpy arrays, dtypes or scalars from plain data and cannot run code.
-ALLOWED_GLOBALS: dict[tuple[str, str], Any] = {
-    ("numpy", "ndarray"): np.ndarray,
-    ("numpy", "dtype"): np.dtype,
-    ("numpy.core.multiarray", "_reconstruct"): _reconstruct,
-    ("numpy._core.multiarray", "_reconstruct"): _reconstruct,
-    ("numpy.core.multiarray", "scalar"): scalar,
-    ("numpy._core.multiarray", "scalar"): scalar,
-    ("numpy.core.numeric", "_frombuffer"): _Sealed(_frombuffer),
-    ("numpy._core.numeric", "_frombuffer"): _Sealed(_frombuffer),
-}
-
 #: Agent type of each ScenarioNet track type; anything else is ``"other"``.
 TRACK_TYPES = {"VEHICLE": "vehicle", "PEDESTRIAN": "pedestrian", "CYCLIST": "cyclist"}
-
-DEFAULT_LANE_WIDTH = 3.5  # [m] lanes with neither a width field nor a polygon
-LANE_WIDTH_RANGE = (2.5, 6.0)  # [m] clip for widths read or estimated from the file
-CONNECT_TOLERANCE = 0.1  # [m] end-to-start gap under which two lanes are joined
-HOLE_FILL_AREA = 50.0  # [m^2] interior holes of the drivable area below this are filled
-_SAMPLE_RATE_TOL = 1e-6  # [s]
-
-
-class _SafeUnpickler(pickle.Unpickler):
-    """An unpickler that resolves only :data:`ALLOWED_GLOBALS` and no persistent ids."""
-
-    def find_class(self, module: str, name: str) -> Any:
-        try:
-            return ALLOWED_GLOBALS[(module, name)]
-        except (KeyError, TypeError):
-            raise UnsafePickleError(
-                f"refused global {module}.{name}: a ScenarioNet pickle may only name numpy's "
-                f"array reconstruction helpers (see ALLOWED_GLOBALS)"
-            ) from None
-
-    def persistent_load(self, pid: Any) -> Any:
-        raise UnsafePickleError(f"refused persistent id {pid!r}: not used by ScenarioNet pickles")
+#: (length, width) m for a box dimension a track never gives: typical sizes of each type.
+DEFAULT_BOX = {
+    "vehicle": (4.5, 2.0),
+    "pedestrian": (0.7, 0.7),
+    "cyclist": (1.8, 0.7),
+    "other": (0.5, 0.5),
+}
+#: Relative tolerance on the source step against 0.1 s / k (float32 timestamps, module doc).
+STEP_TOLERANCE = 0.01
+#: A grid time this close (as a fraction of the source step) to a frame reads that frame alone.
+_SNAP = 1e-3
+_STATE_FIELDS = ("position", "heading", "velocity", "valid", "length", "width")
 
 
 # ---------------------------------------------------------------------- public API
@@ -172,7 +101,7 @@ def read_scenario_description(path: str | os.PathLike) -> dict:
     path = Path(path)
     try:
         with path.open("rb") as f:
-            data = _SafeUnpickler(f).load()
+            data = safe_load(f)
     except UnsafePickleError as exc:
         raise UnsafePickleError(f"{path.name}: {exc}") from None
     except OSError as exc:
@@ -200,13 +129,13 @@ def load_scenarionet(path: str | os.PathLike, current_index: int = 30) -> Scene:
 
     Args:
         path: a ScenarioNet ``*.pkl`` scenario file.
-        current_index: the "now" step of the returned scene (in 10 Hz steps, after any
-            subsampling); 30 gives 3 s of history.
+        current_index: the "now" step of the returned scene (in 10 Hz steps, on the 0.1 s
+            grid); 30 gives 3 s of history.
 
     Returns:
         A scene with the ego at row 0, ``dt = 0.1`` s, ``positions`` ``[N, T, 2]`` m,
         ``yaws`` ``[N, T]`` rad, ``speeds`` ``[N, T]`` m/s, ``extents`` ``[N, 2]`` m, and a
-        :class:`RoadMap` built from the file's lanes (see the module docstring).
+        :class:`RoadMap` built from the file's map features (``scene/scenarionet_map.py``).
 
     Raises:
         UnsafePickleError: the file is a pickle that names anything but numpy arrays.
@@ -240,46 +169,48 @@ def scene_from_description(
         if not isinstance(sd.get(key), Mapping):
             raise ScenarioNetError(f"{source}: missing or non-dict top-level field {key!r}")
     meta = sd["metadata"]
-    stem = Path(source).stem
-    scenario_id = str(meta.get("scenario_id", sd.get("id", stem)))
-    step = _subsample_factor(meta, source)
-
-    ids, types, positions, yaws, speeds, valids, extents, swapped, dropped = _read_tracks(
-        sd["tracks"], meta, source, step
-    )
+    tracks = _read_tracks(sd["tracks"], meta, source)
+    grid = _time_grid(meta, tracks.num_source_steps, source)
+    positions, yaws, speeds, valid = grid.apply(tracks)
     num_steps = positions.shape[1]
     if not 0 <= current_index < num_steps:
         raise ScenarioNetError(
             f"{source}: current_index {current_index} outside the log's {num_steps} steps at 10 Hz"
         )
-    road, num_lanes = _read_map(sd["map_features"], source)
     # A corrupt position (a jump no road user makes) costs its track's steps, not the scene.
-    valids, repaired = drop_impossible_jumps(positions, valids, DEFAULT_DT)
-    positions = np.where(valids[..., None], positions, 0.0)
-
-    counts = {t: int(sum(1 for x in types if x == t)) for t in ("vehicle", "pedestrian", "cyclist")}
-    counts["other"] = len(types) - sum(counts.values())
+    valid, jumped = drop_impossible_jumps(positions, valid, DEFAULT_DT)
+    for row, n in jumped.items():
+        tracks.repair(tracks.ids[row], f"{n} steps after an impossible jump made invalid")
+    tracks.drop_empty(valid)
+    keep = np.array([i for i, k in enumerate(tracks.ids) if k not in tracks.dropped], dtype=int)
+    dataset = str(meta.get("dataset", ""))
+    try:
+        road, map_summary = road_from_features(sd["map_features"], source)
+    except MapError as exc:
+        raise ScenarioNetError(str(exc)) from exc
+    types = [tracks.types[i] for i in keep]
+    counts = {t: types.count(t) for t in ("vehicle", "pedestrian", "cyclist", "other")}
     metadata = {
-        "dataset": str(meta.get("dataset", "")),
+        "dataset": dataset,
         "source_file": Path(source).name,
         "map": str(meta.get("map", "")),
         "num_tracks": counts,
-        "dropped_tracks": dropped,
-        "swapped_extents": swapped,
-        "source_dt": round(DEFAULT_DT / step, 9),
-        "subsample": step,
-        "num_lanes": num_lanes,
-        "repaired_tracks": {ids[row]: n for row, n in repaired.items()},
+        "dropped_tracks": tracks.dropped,
+        "repairs": tracks.repairs,
+        "source_dt": grid.source_dt,
+        "resampled": grid.interpolated,
+        "map_features": map_summary,
     }
+    scenario_id = str(meta.get("scenario_id", sd.get("id", Path(source).stem)))
     try:
         return Scene(
-            positions=positions,
-            yaws=yaws,
-            speeds=speeds,
-            extents=extents,
-            valid=valids,
+            positions=positions[keep],
+            yaws=yaws[keep],
+            speeds=speeds[keep],
+            extents=tracks.extents[keep],
+            valid=valid[keep],
             agent_types=np.array(types),
-            agent_ids=np.array(ids),
+            agent_ids=np.array([tracks.ids[i] for i in keep]),
             ego_index=0,
             road=road,
             dt=DEFAULT_DT,
@@ -293,129 +224,128 @@ def scene_from_description(
         raise ScenarioNetError(f"{source}: {exc}") from exc
 
 
-# ---------------------------------------------------------------------- time base
-def _subsample_factor(meta: Mapping[str, Any], source: str) -> int:
-    """How many source frames make one 0.1 s step (1 for 10 Hz logs, 2 for 20 Hz, ...)."""
-    if meta.get("sample_rate") is not None:
-        try:
-            rate = float(meta["sample_rate"])
-        except (TypeError, ValueError):
-            raise ScenarioNetError(
-                f"{source}: metadata.sample_rate must be a number, got {meta['sample_rate']!r}"
-            ) from None
-        field_name = "metadata.sample_rate"
-    elif meta.get("ts") is not None:
-        ts = np.asarray(meta["ts"], dtype=np.float64).reshape(-1)
-        if ts.size < 2:
-            raise ScenarioNetError(f"{source}: metadata.ts has fewer than 2 timestamps")
-        rate = float(np.median(np.diff(ts)))
-        field_name = "metadata.ts"
-    else:
-        raise ScenarioNetError(f"{source}: missing metadata.sample_rate (and metadata.ts)")
-    if not np.isfinite(rate) or rate <= 0:
-        raise ScenarioNetError(f"{source}: {field_name} gives a step of {rate} s")
-    ratio = DEFAULT_DT / rate
-    k = round(ratio)
-    if k < 1 or abs(rate * k - DEFAULT_DT) > _SAMPLE_RATE_TOL:
-        raise ScenarioNetError(
-            f"{source}: {field_name} gives a step of {rate} s; need {DEFAULT_DT} s or an exact "
-            f"integer fraction of it"
-        )
-    return int(k)
-
-
 # ---------------------------------------------------------------------- tracks
-def _read_tracks(
-    tracks: Mapping[Any, Any], meta: Mapping[str, Any], source: str, step: int
-) -> tuple[
-    list[str],
-    list[str],
-    np.ndarray,
-    np.ndarray,
-    np.ndarray,
-    np.ndarray,
-    np.ndarray,
-    list[str],
-    int,
-]:
-    """Stack the tracks: ids, types, positions [N,T,2] m, yaws [N,T] rad, speeds [N,T] m/s,
-    valid [N,T], extents [N,2] m, the ids whose extents were swapped, the number dropped."""
+@dataclass
+class _Tracks:
+    """Every usable track at the source rate; rows align, the ego is row 0.
+
+    ``position [N, T_src, 2] m``, ``heading [N, T_src] rad``, ``velocity [N, T_src, 2] m/s``,
+    ``valid [N, T_src]``, ``extents [N, 2] m``.
+    """
+
+    ids: list[str]
+    types: list[str]
+    position: np.ndarray
+    heading: np.ndarray
+    velocity: np.ndarray
+    valid: np.ndarray
+    extents: np.ndarray
+    repairs: dict[str, list[str]]
+    dropped: dict[str, str]
+
+    @property
+    def num_source_steps(self) -> int:
+        return self.valid.shape[1]
+
+    def repair(self, track: str, what: str) -> None:
+        self.repairs.setdefault(track, []).append(what)
+
+    def drop_empty(self, valid: np.ndarray) -> None:
+        """Drop every non-ego track left with no valid step on the 10 Hz grid."""
+        if not valid[0].any():
+            raise ScenarioNetError(f"the sdc track {self.ids[0]!r} has no valid step at 10 Hz")
+        for row in np.flatnonzero(~valid.any(axis=1)):
+            self.dropped[self.ids[row]] = "no valid step on the 0.1 s grid"
+            self.repairs.pop(self.ids[row], None)
+
+
+def _read_tracks(tracks: Mapping[Any, Any], meta: Mapping[str, Any], source: str) -> _Tracks:
+    """Read, check and repair every track (module docstring); the ego's problems are fatal."""
     sdc = meta.get("sdc_id")
     if sdc is None:
         raise ScenarioNetError(f"{source}: missing metadata.sdc_id (the ego's track id)")
     if sdc not in tracks:
         raise ScenarioNetError(f"{source}: metadata.sdc_id {sdc!r} is not a key of tracks")
-    order = [sdc, *(k for k in tracks if k != sdc)]
-    num_source_steps = None
     rows: list[tuple[str, str, dict[str, np.ndarray]]] = []
-    swapped: list[str] = []
-    dropped = 0
-    for key in order:
-        track = tracks[key]
-        if not isinstance(track, Mapping) or not isinstance(track.get("state"), Mapping):
-            raise ScenarioNetError(f"{source}: tracks[{key!r}] has no 'state' dict")
-        raw_type = str(track.get("type", ""))
-        agent_type = TRACK_TYPES.get(raw_type, "other")
-        state = _read_state(track["state"], f"{source}: tracks[{key!r}].state")
-        t_len = len(state["valid"])
-        if num_source_steps is None:
-            num_source_steps = t_len
-        elif t_len != num_source_steps:
-            raise ScenarioNetError(
-                f"{source}: tracks[{key!r}].state has {t_len} steps, the ego track {num_source_steps}"
-            )
-        valid_any = state["valid"]
-        if key == sdc:
-            if agent_type != "vehicle":
-                raise ScenarioNetError(f"{source}: the sdc track {sdc!r} has type {raw_type!r}")
-            if not valid_any.any():
-                raise ScenarioNetError(f"{source}: the sdc track {sdc!r} has no valid step")
-        elif not valid_any.any():
-            dropped += 1
-            continue
-        # Extents over all valid source frames, before subsampling.
-        v = state["valid"]
-        length = float(np.median(state["length"][v]))
-        width = float(np.median(state["width"][v]))
-        if not (np.isfinite(length) and np.isfinite(width) and length > 0 and width > 0):
-            raise ScenarioNetError(
-                f"{source}: tracks[{key!r}] has a bad box (length {length}, width {width}) m"
-            )
-        if agent_type == "vehicle" and length < width:
-            length, width = width, length
-            swapped.append(str(key))
-        sub = {name: arr[::step] for name, arr in state.items()}
-        if not sub["valid"].any():
+    repairs: dict[str, list[str]] = {}
+    dropped: dict[str, str] = {}
+    for key in [sdc, *(k for k in tracks if k != sdc)]:
+        tid, track = str(key), tracks[key]
+        where = f"{source}: tracks[{key!r}]"
+        try:
+            agent_type, state, notes = _read_track(track, where)
+            if rows and len(state["valid"]) != rows[0][2]["valid"].shape[0]:
+                raise ScenarioNetError(
+                    f"{where}.state has {len(state['valid'])} steps, the ego track "
+                    f"{rows[0][2]['valid'].shape[0]}"
+                )
+        except ScenarioNetError as exc:
             if key == sdc:
-                raise ScenarioNetError(f"{source}: the sdc track has no valid step at 10 Hz")
-            dropped += 1
+                raise
+            dropped[tid] = str(exc).removeprefix(f"{where}").lstrip(".: ") or "unreadable"
             continue
-        sub["extent"] = np.array([length, width])
-        rows.append((str(key), agent_type, sub))
-    ids = [r[0] for r in rows]
-    if len(set(ids)) != len(ids):
-        raise ScenarioNetError(f"{source}: track ids are not unique as strings")
-    types = [r[1] for r in rows]
-    positions = np.stack([r[2]["position"] for r in rows])
-    yaws = np.stack([r[2]["heading"] for r in rows])
-    speeds = np.stack([r[2]["speed"] for r in rows])
-    valid = np.stack([r[2]["valid"] for r in rows])
-    extents = np.stack([r[2]["extent"] for r in rows])
-    return ids, types, positions, yaws, speeds, valid, extents, swapped, dropped
+        if key == sdc and agent_type != "vehicle":
+            raise ScenarioNetError(f"{where}: the sdc track has type {track.get('type')!r}")
+        if tid in {r[0] for r in rows}:
+            raise ScenarioNetError(f"{source}: track ids are not unique as strings")
+        if notes:
+            repairs[tid] = notes
+        rows.append((tid, agent_type, state))
+    return _Tracks(
+        ids=[r[0] for r in rows],
+        types=[r[1] for r in rows],
+        position=np.stack([r[2]["position"] for r in rows]),
+        heading=np.stack([r[2]["heading"] for r in rows]),
+        velocity=np.stack([r[2]["velocity"] for r in rows]),
+        valid=np.stack([r[2]["valid"] for r in rows]),
+        extents=np.stack([r[2]["extent"] for r in rows]),
+        repairs=repairs,
+        dropped=dropped,
+    )
+
+
+def _read_track(track: Any, where: str) -> tuple[str, dict[str, np.ndarray], list[str]]:
+    """One track: its agent type, its arrays at the source rate, and the repairs made."""
+    if not isinstance(track, Mapping) or not isinstance(track.get("state"), Mapping):
+        raise ScenarioNetError(f"{where}: has no 'state' dict")
+    agent_type = TRACK_TYPES.get(str(track.get("type", "")), "other")
+    state = _read_state(track["state"], f"{where}.state")
+    notes = []
+    valid = state["valid"]
+    finite = (
+        np.isfinite(state["position"]).all(axis=1)
+        & np.isfinite(state["heading"])
+        & np.isfinite(state["velocity"]).all(axis=1)
+    )
+    bad = valid & ~finite
+    if bad.any():
+        notes.append(
+            f"{int(bad.sum())} steps with a non-finite position, heading or velocity made invalid"
+        )
+        valid = valid & finite
+    if not valid.any():
+        raise ScenarioNetError(f"{where}: no valid step")
+    extent, box_notes = _box(state["length"][valid], state["width"][valid], agent_type)
+    notes += box_notes
+    state["valid"] = valid
+    for name in ("position", "velocity"):
+        state[name] = np.where(valid[:, None], state[name], 0.0)
+    state["heading"] = wrap_angle(np.where(valid, state["heading"], 0.0))
+    state["extent"] = extent
+    return agent_type, state, notes
 
 
 def _read_state(state: Mapping[str, Any], where: str) -> dict[str, np.ndarray]:
-    """One track's per-step arrays at the source rate: position [T,2] m, heading [T] rad
-    (wrapped to [-pi, pi)), speed [T] m/s, valid [T] bool, length/width [T] m."""
+    """One track's per-step arrays at the source rate: position [T, 2] m, heading [T] rad,
+    velocity [T, 2] m/s, valid [T] bool, length/width [T] m (``(T,)`` or ``(T, 1)`` in)."""
     out: dict[str, np.ndarray] = {}
-    for name in ("position", "heading", "velocity", "valid", "length", "width"):
+    for name in _STATE_FIELDS:
         if name not in state:
             raise ScenarioNetError(f"{where}: missing field {name!r}")
         try:
-            arr = np.asarray(state[name], dtype=np.float64)
+            out[name] = np.asarray(state[name], dtype=np.float64)
         except (TypeError, ValueError) as exc:
             raise ScenarioNetError(f"{where}.{name}: not a numeric array ({exc})") from None
-        out[name] = arr
     pos, vel = out["position"], out["velocity"]
     if pos.ndim != 2 or pos.shape[1] not in (2, 3):
         raise ScenarioNetError(f"{where}.position: expected shape (T, 2|3), got {pos.shape}")
@@ -424,167 +354,118 @@ def _read_state(state: Mapping[str, Any], where: str) -> dict[str, np.ndarray]:
         raise ScenarioNetError(f"{where}.position: no steps")
     if vel.ndim != 2 or vel.shape[0] != t or vel.shape[1] < 2:
         raise ScenarioNetError(f"{where}.velocity: expected shape ({t}, 2), got {vel.shape}")
-    flat = {}
     for name in ("heading", "valid", "length", "width"):
-        arr = out[name]
-        if arr.shape not in ((t,), (t, 1)):
+        if out[name].shape not in ((t,), (t, 1)):
             raise ScenarioNetError(
-                f"{where}.{name}: expected shape ({t},) or ({t}, 1), got {arr.shape}"
+                f"{where}.{name}: expected shape ({t},) or ({t}, 1), got {out[name].shape}"
             )
-        flat[name] = arr.reshape(t)
-    valid = np.isfinite(flat["valid"]) & (flat["valid"] != 0)
-    pos2 = pos[:, :2]
-    # Signed speed (the scene contract): the velocity's magnitude, negative where it points
-    # backwards relative to the heading (a reversing car). The magnitude, not the projection,
-    # so that annotation slip between heading and velocity does not shrink speeds.
-    along = vel[:, 0] * np.cos(flat["heading"]) + vel[:, 1] * np.sin(flat["heading"])
-    speed = np.where(along < 0, -1.0, 1.0) * np.linalg.norm(vel[:, :2], axis=1)
-    for name, arr in (("position", pos2), ("heading", flat["heading"]), ("velocity", speed)):
-        if not np.isfinite(arr[valid]).all():
-            raise ScenarioNetError(f"{where}.{name}: non-finite values at valid steps")
-    heading = np.where(valid, flat["heading"], 0.0)
-    heading = wrap_angle(heading)
-    return {
-        "position": np.where(valid[:, None], pos2, 0.0),
-        "heading": heading,
-        "speed": np.where(valid, speed, 0.0),
-        "valid": valid,
-        "length": flat["length"],
-        "width": flat["width"],
-    }
+        out[name] = out[name].reshape(t)
+    out["valid"] = np.isfinite(out["valid"]) & (out["valid"] != 0)
+    out["position"], out["velocity"] = pos[:, :2], vel[:, :2]
+    return out
 
 
-# ---------------------------------------------------------------------- map
-def _read_map(features: Mapping[Any, Any], source: str) -> tuple[RoadMap, int]:
-    """Lanes -> RoadMap (network, drivable area, centre lines); returns it and the lane count."""
-    keys: list[str] = []
-    lines: list[np.ndarray] = []
-    polys: list[np.ndarray | None] = []
-    widths: list[float] = []
-    exits: list[list[str]] = []
-    entries: list[list[str]] = []
-    has_links = False
-    driveways = []
-    for key, feat in features.items():
-        if not isinstance(feat, Mapping):
-            raise ScenarioNetError(f"{source}: map_features[{key!r}] is not a dict")
-        ftype = str(feat.get("type", ""))
-        where = f"{source}: map_features[{key!r}]"
-        if ftype == "DRIVEWAY":
-            poly = _points(feat.get("polygon"), f"{where}.polygon", allow_none=True)
-            if poly is not None and len(poly) >= 3:
-                driveways.append(shapely.make_valid(shapely.Polygon(poly)))
-            continue
-        if not ftype.startswith("LANE") or ftype == "LANE_BIKE_LANE":
-            continue
-        line = _points(feat.get("polyline"), f"{where}.polyline")
-        if len(line) < 2:
-            continue  # a lane needs a direction
-        poly = _points(feat.get("polygon"), f"{where}.polygon", allow_none=True)
-        if poly is not None and len(poly) < 3:
-            poly = None
-        keys.append(str(key))
-        lines.append(line)
-        polys.append(poly)
-        widths.append(_lane_width(feat.get("width"), line, poly, f"{where}.width"))
-        for field_name, store in (("exit_lanes", exits), ("entry_lanes", entries)):
-            links = feat.get(field_name)
-            has_links |= links is not None
-            store.append([] if links is None else [str(x) for x in np.asarray(links).reshape(-1)])
-    if has_links:
-        successors = _successors_from_links(keys, exits, entries)
-    else:
-        successors = _successors_from_geometry(lines)
-    road = RoadMap.from_centerlines(lines, widths, polygons=polys, successors=successors)
-    area = road.drivable_area
-    if driveways:
-        area = shapely.union(area, shapely.union_all(driveways))
-    area = _fill_small_holes(area, HOLE_FILL_AREA)
-    road = RoadMap(road.network, area, road.lane_centerlines, road.lane_widths)
-    return road, len(road.lane_centerlines)
+def _box(lengths: np.ndarray, widths: np.ndarray, agent_type: str) -> tuple[np.ndarray, list]:
+    """``[2]`` (length, width) m: the median of the good sizes at valid steps, else the type's
+    default; a vehicle's swapped box is put right. Returns it and the repairs made."""
+    notes = []
+    box = []
+    for dim, values, default in zip(
+        ("length", "width"), (lengths, widths), DEFAULT_BOX[agent_type], strict=True
+    ):
+        good = values[np.isfinite(values) & (values > 0)]
+        if good.size:
+            box.append(float(np.median(good)))
+        else:
+            box.append(default)
+            notes.append(f"{dim} missing (0 or NaN): {agent_type} default {default} m")
+    if agent_type == "vehicle" and box[0] < box[1]:
+        box.reverse()
+        notes.append("length and width swapped")
+    return np.array(box), notes
 
 
-def _points(value: Any, where: str, allow_none: bool = False) -> np.ndarray | None:
-    """A ``(P, 2|3)`` point list as ``[P, 2]`` float64 m (the third column, z or yaw, dropped)."""
-    if value is None:
-        if allow_none:
-            return None
-        raise ScenarioNetError(f"{where}: missing")
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ScenarioNetError(f"{where}: not a numeric array ({exc})") from None
-    if arr.ndim != 2 or arr.shape[1] not in (2, 3):
-        raise ScenarioNetError(f"{where}: expected shape (P, 2|3), got {arr.shape}")
-    arr = arr[:, :2]
-    if not np.isfinite(arr).all():
-        raise ScenarioNetError(f"{where}: non-finite coordinates")
-    return arr
+# ---------------------------------------------------------------------- time base
+@dataclass(frozen=True)
+class _Grid:
+    """Where each 0.1 s grid step reads the source: frame ``left`` and ``left + 1`` with
+    weight ``w`` on the second (``[T]`` each)."""
+
+    left: np.ndarray
+    w: np.ndarray
+    source_dt: float
+    interpolated: bool
+
+    def apply(self, tr: _Tracks) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """positions [N, T, 2] m, yaws [N, T] rad, speeds [N, T] m/s, valid [N, T] on the grid."""
+        i, w = self.left, self.w
+        j = np.minimum(i + 1, tr.num_source_steps - 1)
+        vi, vj = tr.valid[:, i], tr.valid[:, j]
+        # A frame whose weight is within _SNAP of 0 is not needed: a track's first or last
+        # frame stays valid when the grid time falls a float32 rounding beside it.
+        valid = (vi | (w >= 1 - _SNAP)) & (vj | (w <= _SNAP))
+        wv = np.where(vi & vj, w, np.where(vi, 0.0, 1.0))
+        pos = (1 - wv[..., None]) * tr.position[:, i] + wv[..., None] * tr.position[:, j]
+        vel = (1 - wv[..., None]) * tr.velocity[:, i] + wv[..., None] * tr.velocity[:, j]
+        turn = wrap_angle(tr.heading[:, j] - tr.heading[:, i])
+        yaw = wrap_angle(tr.heading[:, i] + wv * turn)
+        # Signed speed (the scene contract): the velocity's magnitude, negative where it points
+        # backwards relative to the heading (a reversing car). The magnitude, not the
+        # projection, so that annotation slip between heading and velocity does not shrink it.
+        along = vel[..., 0] * np.cos(yaw) + vel[..., 1] * np.sin(yaw)
+        speed = np.where(along < 0, -1.0, 1.0) * np.linalg.norm(vel, axis=-1)
+        return pos, yaw, speed, valid
 
 
-def _lane_width(value: Any, line: np.ndarray, poly: np.ndarray | None, where: str) -> float:
-    """Lane width, m: the ``width`` field, else polygon area / centre-line length, else 3.5."""
-    lo, hi = LANE_WIDTH_RANGE
-    if value is not None:
+def _time_grid(meta: Mapping[str, Any], num_frames: int, source: str) -> _Grid:
+    """The exact 0.1 s grid over the log's frames (module docstring, "Time base")."""
+    if num_frames < 2:
+        raise ScenarioNetError(f"{source}: the log has {num_frames} frame; a scene needs two")
+    times, field_name = _frame_times(meta, num_frames, source)
+    steps = np.diff(times)
+    if (steps <= 0).any():
+        raise ScenarioNetError(f"{source}: {field_name} is not strictly increasing")
+    step = float(np.median(steps))
+    k = max(1, round(DEFAULT_DT / step))
+    if abs(step * k - DEFAULT_DT) > STEP_TOLERANCE * DEFAULT_DT:
+        raise ScenarioNetError(
+            f"{source}: {field_name} gives a step of {step:.6g} s; need {DEFAULT_DT} s or an "
+            f"integer fraction of it (within {STEP_TOLERANCE:.0%})"
+        )
+    rel = (times - times[0]) / DEFAULT_DT  # frame times in grid steps
+    grid = np.arange(int(np.floor(rel[-1] + _SNAP)) + 1, dtype=np.float64)
+    left = np.clip(np.searchsorted(rel, grid, side="right") - 1, 0, max(num_frames - 2, 0))
+    span = rel[np.minimum(left + 1, num_frames - 1)] - rel[left]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.clip(np.where(span > 0, (grid - rel[left]) / span, 0.0), 0.0, 1.0)
+    on_frames = bool(np.all((w <= 1e-9) | (w >= 1 - 1e-9)))
+    return _Grid(left, w, round(step, 9), not on_frames)
+
+
+def _frame_times(meta: Mapping[str, Any], num_frames: int, source: str) -> tuple[np.ndarray, str]:
+    """``[T_src]`` s frame times from ``metadata.ts`` (one per frame) or ``sample_rate``."""
+    ts = meta.get("ts")
+    if ts is not None:
         try:
-            arr = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise ScenarioNetError(f"{where}: not numeric ({exc})") from None
-        if arr.ndim == 2:  # per point (left, right) half widths
-            arr = arr.sum(axis=1)
-        arr = arr.reshape(-1)
-        arr = arr[np.isfinite(arr)]
-        if arr.size and float(np.median(arr)) > 0:
-            return float(np.clip(np.median(arr), lo, hi))
-    if poly is not None:
-        length = float(np.linalg.norm(np.diff(line, axis=0), axis=1).sum())
-        area = float(shapely.make_valid(shapely.Polygon(poly)).area)
-        if length > 1e-6 and area > 0:
-            return float(np.clip(area / length, lo, hi))
-    return DEFAULT_LANE_WIDTH
-
-
-def _successors_from_links(
-    keys: list[str], exits: list[list[str]], entries: list[list[str]]
-) -> list[list[int]]:
-    """Successor lane indices from ``exit_lanes`` and (reversed) ``entry_lanes`` ids."""
-    index = {k: i for i, k in enumerate(keys)}
-    succ: list[set[int]] = [set() for _ in keys]
-    for i, (ex, en) in enumerate(zip(exits, entries, strict=True)):
-        for other in ex:
-            j = index.get(other)
-            if j is not None and j != i:
-                succ[i].add(j)
-        for other in en:
-            j = index.get(other)
-            if j is not None and j != i:
-                succ[j].add(i)
-    return [sorted(s) for s in succ]
-
-
-def _successors_from_geometry(lines: list[np.ndarray]) -> list[list[int]]:
-    """Lane j continues lane i where j starts within CONNECT_TOLERANCE of i's end."""
-    if not lines:
-        return []
-    starts = shapely.points(np.array([line[0] for line in lines]))
-    ends = shapely.points(np.array([line[-1] for line in lines]))
-    tree = shapely.STRtree(starts)
-    src, dst = tree.query(ends, predicate="dwithin", distance=CONNECT_TOLERANCE)
-    succ: list[list[int]] = [[] for _ in lines]
-    for i, j in zip(src.tolist(), dst.tolist(), strict=True):
-        if i != j:
-            succ[i].append(j)
-    return [sorted(s) for s in succ]
-
-
-def _fill_small_holes(area: shapely.Geometry, max_hole: float) -> shapely.Geometry:
-    """The area with every interior ring enclosing less than ``max_hole`` m^2 filled."""
-    parts = []
-    for poly in getattr(area, "geoms", [area]):
-        if poly.geom_type != "Polygon" or poly.is_empty:
-            continue
-        holes = [r for r in poly.interiors if shapely.Polygon(r).area >= max_hole]
-        parts.append(shapely.Polygon(poly.exterior, holes))
-    if not parts:
-        return area
-    return shapely.union_all(parts)
+            times = np.asarray(ts, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise ScenarioNetError(f"{source}: metadata.ts is not numeric") from None
+        if times.size == num_frames and num_frames >= 2 and np.isfinite(times).all():
+            return times, "metadata.ts"
+    rate = meta.get("sample_rate")
+    if rate is None:
+        if ts is None:
+            raise ScenarioNetError(f"{source}: missing metadata.sample_rate (and metadata.ts)")
+        raise ScenarioNetError(
+            f"{source}: metadata.ts has {np.size(ts)} timestamps for {num_frames} frames "
+            "and there is no metadata.sample_rate"
+        )
+    try:
+        rate = float(rate)
+    except (TypeError, ValueError):
+        raise ScenarioNetError(
+            f"{source}: metadata.sample_rate must be a number, got {rate!r}"
+        ) from None
+    if not (np.isfinite(rate) and rate > 0):
+        raise ScenarioNetError(f"{source}: metadata.sample_rate gives a step of {rate} s")
+    return np.arange(num_frames) * rate, "metadata.sample_rate"

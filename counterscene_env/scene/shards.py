@@ -19,6 +19,7 @@ key                       content
 ``{i}/road_lines``        ``[sum P, 2]`` float64 lane centre points, m
 ``{i}/road_offsets``      ``[L + 1]`` int64, where each centre line starts in ``road_lines``
 ``{i}/road_widths``       ``[L]`` float64, m
+``{i}/road_extent``       uint8 WKB of the map's extent (optional: absent means the whole plane)
 ========================  ============================================================
 
 Writes are atomic (temporary file, then rename), so an interrupted run never leaves a shard
@@ -79,6 +80,8 @@ def save_scenes(scenes: Sequence[Scene], path: str | os.PathLike) -> Path:
         arrays[f"{i}/road_lines"] = np.concatenate(lines) if lines else np.zeros((0, 2))
         arrays[f"{i}/road_offsets"] = np.cumsum([0] + [len(c) for c in lines]).astype(np.int64)
         arrays[f"{i}/road_widths"] = road.lane_widths
+        if road.extent is not None:
+            arrays[f"{i}/road_extent"] = np.frombuffer(shapely.to_wkb(road.extent), np.uint8)
     path.parent.mkdir(parents=True, exist_ok=True)
     # A plain open() (not mkstemp, which makes 0600 files) so the shard gets the usual umask.
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
@@ -149,6 +152,11 @@ def _read_scene(data, i: int, path: Path) -> Scene:
         drivable_area=shapely.from_wkb(get("road_area").tobytes()),
         lane_centerlines=[lines[a:b] for a, b in itertools.pairwise(offsets)],
         lane_widths=get("road_widths"),
+        extent=(
+            shapely.from_wkb(data[f"{i}/road_extent"].tobytes())
+            if f"{i}/road_extent" in data.files
+            else None
+        ),
     )
     return Scene(
         **{name: get(name) for name in _STATE_FIELDS},

@@ -1,7 +1,8 @@
 """Where episodes come from: a scenario spec -> scenes. The one place specs are resolved.
 
 A spec is a generated road (``highway``, ``merge``, ``intersection``, ``roundabout``: a fresh
-highway-env recording per episode), ``scenarionet:DIR`` (real logs converted by ScenarioNet), a
+highway-env recording per episode), ``scenarionet:DIR`` (real logs converted by ScenarioNet),
+``commonroad:DIR`` (CommonRoad XML scenarios, one scene per distinct recording), a
 dataset directory or shard file written by ``counterscene generate``, or (for an env) a list of
 any of these (each episode picks one uniformly).
 
@@ -17,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from counterscene_env.config import SCENARIONET_PREFIX, Scenario
+from counterscene_env.config import COMMONROAD_PREFIX, SCENARIONET_PREFIX, Scenario
 from counterscene_env.scene.core import Scene
 
 #: Generated scenes take their seed from [0, SEED_RANGE).
@@ -30,20 +31,31 @@ def check_spec(spec: str) -> str:
     Raises:
         ValueError: neither (the message lists the roads and the path forms).
     """
-    if spec not in Scenario.values() and not Path(spec.removeprefix(SCENARIONET_PREFIX)).exists():
+    if spec not in Scenario.values() and not spec_path(spec).exists():
         raise ValueError(
             f"unknown scenario {spec!r}: not one of {list(Scenario.values())}, and no such "
-            f"path (use '{SCENARIONET_PREFIX}DIR' or a dataset directory)"
+            f"path (use '{SCENARIONET_PREFIX}DIR', '{COMMONROAD_PREFIX}DIR' or a dataset "
+            "directory)"
         )
     return spec
 
 
+def spec_path(spec: str) -> Path:
+    """The path of a stored spec, without its ``scenarionet:`` / ``commonroad:`` prefix."""
+    return Path(spec.removeprefix(SCENARIONET_PREFIX).removeprefix(COMMONROAD_PREFIX))
+
+
 def stored_scenes(spec: str) -> Iterator[Scene]:
-    """The scenes of a stored spec (``scenarionet:DIR``, a dataset directory or shard), in
-    order."""
+    """The scenes of a stored spec (``scenarionet:DIR``, ``commonroad:DIR``, a dataset
+    directory or shard), in order."""
+    if spec.startswith(COMMONROAD_PREFIX):
+        from counterscene_env.scene.commonroad import iter_commonroad
+
+        yield from iter_commonroad(spec_path(spec))
+        return
     from counterscene_env.scene.datagen import iter_scenes
 
-    for scene, _ in iter_scenes(spec.removeprefix(SCENARIONET_PREFIX)):
+    for scene, _ in iter_scenes(spec_path(spec)):
         yield scene
 
 
@@ -110,6 +122,6 @@ def scenes_for(spec: str, episodes: int, seed: int) -> Iterator[Scene]:
         cache.append(scene)
         yield scene
     if not cache:
-        raise FileNotFoundError(f"{spec.removeprefix(SCENARIONET_PREFIX)}: no scenes")
+        raise FileNotFoundError(f"{spec_path(spec)}: no scenes")
     for i in range(len(cache), episodes):
         yield cache[i % len(cache)]

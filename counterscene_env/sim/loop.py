@@ -280,7 +280,7 @@ class ClosedLoop:
             "hard_braking": bool(acc < HARD_BRAKE_THRESHOLD),
             "ego_acceleration": float(acc),
             "ego_speed": float(ep.speeds[e, t]),
-            "off_road": not bool(geometry.points_in_area(log.road.drivable_area, pos[e])),
+            "off_road": bool(log.road.off_road(pos[e])),
             "min_ttc": float(ttc.min()) if ttc.size else math.inf,
             "adversary": None if adv is None else str(log.agent_ids[adv]),
             "conflict_type": None if conflict is None else conflict.subtype,

@@ -268,17 +268,15 @@ def _keep_on_road(ep: Episode, movers: np.ndarray, config: SimConfig) -> list[in
     rows = np.flatnonzero(movers)
     if not rows.size:
         return []
-    area = log.road.drivable_area
-    leaving = geometry.points_in_area(area, ep.positions[rows, t]) & ~geometry.points_in_area(
-        area, ep.positions[rows, t1]
-    )
+    road = log.road
+    leaving = ~road.off_road(ep.positions[rows, t]) & road.off_road(ep.positions[rows, t1])
     kept = []
     for r in rows[leaving]:
         here, there = ep.positions[r, t], ep.positions[r, t1]
         step = there - here
         course = math.atan2(step[1], step[0]) if step @ step > 1e-6 else ep.yaws[r, t1]
         moved = road_keeping.keep_on_lane(there, course, ep.pieces)
-        if moved is None or not geometry.points_in_area(area, moved[None])[0]:
+        if moved is None or road.off_road(moved):
             continue
         step = moved - here
         yaw = math.atan2(step[1], step[0]) if step @ step > 1e-4 else float(ep.yaws[r, t])
