@@ -341,19 +341,24 @@ def mean_speed(tracks: Tracks, agent: int) -> float:
     return float(tracks.speeds[agent, on].mean()) if on.any() else 0.0
 
 
-def _passes_strict(tracks: Tracks, conflict: Conflict, start_step: int) -> bool:
-    """The strict gates (module constants): near, co-arriving, ahead and not truncated,
-    moving."""
+#: The strict gates by name, in the order :func:`strict_gate_failures` reports them.
+STRICT_GATES = ("far", "late", "truncated", "drifting_apart", "parked")
+
+
+def strict_gate_failures(tracks: Tracks, conflict: Conflict, start_step: int) -> list[str]:
+    """The strict gates (module constants) a conflict fails, by name (:data:`STRICT_GATES`):
+    ``far`` (d_min), ``late`` (arrival gap), ``truncated`` (closest on the last jointly valid
+    step), ``drifting_apart`` (both closest on the first), ``parked`` (mean speed)."""
     joint = np.flatnonzero(tracks.valid[tracks.ego] & tracks.valid[conflict.agent])
     first, last = start_step + int(joint[0]), start_step + int(joint[-1])
-    return (
-        conflict.min_distance < STRICT_MAX_DISTANCE
-        and conflict.arrival_gap < STRICT_MAX_GAP
-        and conflict.ego_step != last
-        and conflict.adversary_step != last
-        and not conflict.ego_step == conflict.adversary_step == first
-        and mean_speed(tracks, conflict.agent) > STRICT_MIN_SPEED
-    )
+    failed = {
+        "far": conflict.min_distance >= STRICT_MAX_DISTANCE,
+        "late": conflict.arrival_gap >= STRICT_MAX_GAP,
+        "truncated": last in (conflict.ego_step, conflict.adversary_step),
+        "drifting_apart": conflict.ego_step == conflict.adversary_step == first,
+        "parked": mean_speed(tracks, conflict.agent) <= STRICT_MIN_SPEED,
+    }
+    return [gate for gate in STRICT_GATES if failed[gate]]
 
 
 def mine(
@@ -370,7 +375,7 @@ def mine(
         if (
             strict
             and conflict.tier is not None
-            and not _passes_strict(tracks, conflict, start_step)
+            and strict_gate_failures(tracks, conflict, start_step)
         ):
             conflict = replace(conflict, tier=None)
         out.append(conflict)

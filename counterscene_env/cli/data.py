@@ -114,10 +114,11 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
                 "duration_s": round(scene.duration, 3),
                 "lanes": len(scene.road.lane_centerlines),
                 "time_s": round(load_time, 4),
-                **{
-                    k: m[k]
-                    for k in ("cr", "cr_all_agents", "orr", "hbr_ego", "hbr_all", "hbr_paper")
-                },
+                **{k: m[k] for k in _METRIC_COLUMNS},
+                "repaired": len(scene.metadata.get("repairs", {})),
+                "dropped": len(scene.metadata.get("dropped_tracks", {})),
+                "repairs": scene.metadata.get("repairs", {}),
+                "dropped_tracks": scene.metadata.get("dropped_tracks", {}),
             }
         )
     if not rows:
@@ -139,12 +140,34 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     print("  ".join(f"{c:>14}" for c in cols))
     for r in rows:
         print("  ".join(f"{fmt(r[c]):>14}" for c in cols))
+    _print_repairs(rows)
     print(f"\n{len(rows)} scenes")
     for k, v in summary.items():
         if k != "scenes":
             print(f"  {k:>14}: mean {v['mean']:.4g}  min {v['min']:.4g}  max {v['max']:.4g}")
     return 0
 
+
+def _print_repairs(rows: list[dict]) -> None:
+    """What the importer repaired or dropped, per scene (ScenarioNet and CommonRoad imports)."""
+    for r in rows:
+        for track, what in r["repairs"].items():
+            print(f"  {r['scenario_id']}: track {track} repaired: {'; '.join(what)}")
+        for track, why in r["dropped_tracks"].items():
+            print(f"  {r['scenario_id']}: track {track} dropped: {why}")
+
+
+#: Factual metrics of ``counterscene inspect`` (over the whole log).
+_METRIC_COLUMNS = (
+    "cr",
+    "cr_all_agents",
+    "orr",
+    "orr_parked",
+    "orr_moving",
+    "hbr_ego",
+    "hbr_all",
+    "hbr_paper",
+)
 
 #: Per-scene columns of ``counterscene inspect`` (numbers after the id are also summarised).
 _INSPECT_COLUMNS = (
@@ -155,10 +178,7 @@ _INSPECT_COLUMNS = (
     "duration_s",
     "lanes",
     "time_s",
-    "cr",
-    "cr_all_agents",
-    "orr",
-    "hbr_ego",
-    "hbr_all",
-    "hbr_paper",
+    "repaired",
+    "dropped",
+    *_METRIC_COLUMNS,
 )
