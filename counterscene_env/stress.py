@@ -32,7 +32,7 @@ from counterscene_env import metrics
 from counterscene_env.config import Scenario
 from counterscene_env.planners import Planner, make_planner
 from counterscene_env.scene.core import Scene
-from counterscene_env.scene.sources import check_spec, scenes_for
+from counterscene_env.scene.sources import SKIPPED, check_spec, scenes_for
 from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.world_model.model import WorldModel
 
@@ -358,6 +358,11 @@ def summarize(records: Sequence[dict], config: StressConfig) -> dict:
         "episodes_without_ttc_conflict": int((~np.isfinite(ttc)).sum()),
         "mean_min_clearance_adversary": overall["min_clearance_adversary"],
         "fallbacks": sum(r["fallback"] is not None for r in records),
+        # Real logs: an episode ends with its log; a log with no future at all is skipped.
+        "episodes_cut_at_log_end": sum(
+            r["rollout_s"] < config.sim.duration - 1e-6 for r in records
+        ),
+        "scenes_too_short": SKIPPED.get(config.scenario, 0),
         "seconds_per_episode": seconds / len(records),
         "seconds_per_replan": replan_seconds / replans if replans else math.nan,
         "overall": overall,

@@ -252,7 +252,7 @@ def test_sample_rate_from_ts_and_bad_rates(tmp_path):
         load_scenarionet(_write(tmp_path, sd, "odd.pkl"))
     sd = _scenario(dt=0.2)
     del sd["metadata"]["ts"]
-    with pytest.raises(ScenarioNetError, match="sample_rate gives a step of 0.2 s"):
+    with pytest.raises(ScenarioNetError, match=r"sample_rate gives a step of 0\.2 s"):
         load_scenarionet(_write(tmp_path, sd, "slow.pkl"))
 
 
@@ -495,7 +495,7 @@ def test_defaultdicts_with_builtin_factories_load_and_other_factories_are_refuse
     assert data["metadata"]["number_summary"]["num_moving_objects_each_type"]["VEHICLE"] == 3
     assert load_scenarionet(_write(tmp_path, sd)).num_agents == 5
     sd["metadata"]["bad"] = defaultdict(set)
-    with pytest.raises(UnsafePickleError, match="builtins.set"):
+    with pytest.raises(UnsafePickleError, match=r"builtins\.set"):
         read_scenario_description(_write(tmp_path, sd))
 
 

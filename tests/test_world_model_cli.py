@@ -7,9 +7,11 @@ import math
 
 import pytest
 import torch
+from conftest import crash_scene
 from safetensors.torch import load_file
 
 from counterscene_env.cli import main
+from counterscene_env.scene.shards import save_scenes
 from counterscene_env.world_model.checkpoint import load_model
 from counterscene_env.world_model.config import preset
 
@@ -162,6 +164,55 @@ def test_evaluate_model_json(trained, dataset, capsys):
     assert raw["lane_steering"] == 0 and raw["model"]["ade"] != model["ade"]
     assert main([*argv, "--quiet", "--lane-steering", "-1"]) == 1
     assert "--lane-steering must be >= 0" in capsys.readouterr().err
+    # The speed split: three bins, every agent in exactly one, each with the top level's keys.
+    assert result["speed_bins_m_s"] == [0.5, 3.0] and result["skipped_scenes"] == 0
+    by_speed = result["by_speed"]
+    assert list(by_speed) == ["parked", "slow", "moving"]
+    assert sum(b["agents"] for b in by_speed.values()) == result["agents"]
+    for block in by_speed.values():
+        assert set(block) == {"agents", "model", "constant_velocity", "log_offroad_rate"}
+        assert set(block["model"]) == set(model) and set(block["constant_velocity"]) == set(cv)
+    assert by_speed["moving"]["agents"] > 0  # generated merge traffic drives
+
+
+def test_evaluate_model_speed_bins_and_short_logs(trained, tmp_path, capsys):
+    # Row 0 (ego) and row 1 drive at 10 m/s, row 2 is parked (crash_scene). "Now" at step 10:
+    # 11 history frames of the model's 31 (padded) and 29 future frames of its 52 (the rest
+    # invalid). The same scene with "now" at its last step has no future: skipped, counted.
+    scene = crash_scene()
+    shard = save_scenes(
+        [scene.replace(current_index=10), scene.replace(current_index=scene.num_steps - 1)],
+        tmp_path / "short.npz",
+    )
+    argv = ["evaluate-model", "--data", str(shard), "--model", str(trained), "--quiet"]
+    capsys.readouterr()
+    assert main([*argv, "--samples", "2", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert (result["scenes"], result["skipped_scenes"], result["agents"]) == (1, 1, 3)
+    by_speed = result["by_speed"]
+    assert [by_speed[b]["agents"] for b in ("parked", "slow", "moving")] == [1, 0, 2]
+    for h in ("1s", "full"):
+        assert math.isfinite(result["model"]["ade"][h]) and result["model"]["ade"][h] >= 0
+        # Constant velocity keeps the parked car exactly where the log has it.
+        assert by_speed["parked"]["constant_velocity"]["ade"][h] < 1e-3
+    assert by_speed["slow"]["model"]["ade"]["1s"] is None  # an empty bin has no figure
+    # The text report prints one ADE block per bin.
+    assert main([*argv, "--samples", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "1 skipped" in out and "parked (1 agents)" in out and "moving (2 agents)" in out
+
+
+def test_evaluate_model_commonroad_flag(capsys, tmp_path):
+    with pytest.raises(SystemExit):
+        main(["evaluate-model", "--help"])
+    assert "--commonroad DIR" in capsys.readouterr().out
+    # A missing directory is refused before the CommonRoad loader is imported.
+    assert main(["evaluate-model", "--commonroad", str(tmp_path / "none"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "none" in err and "no such file" in err and "Traceback" not in err
+    argv = ["evaluate-model", "--commonroad", str(tmp_path), "--scenarionet", str(tmp_path)]
+    with pytest.raises(SystemExit):  # one source at a time
+        main(argv)
 
 
 def test_evaluate_model_missing_model(dataset, capsys):

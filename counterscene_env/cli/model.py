@@ -99,6 +99,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+#: Scenes ``evaluate-model`` generates, or reads from each ``--data`` dataset, unless
+#: ``--scenes`` says otherwise (real-log sources default to all their scenes).
+DEFAULT_EVAL_SCENES = 50
+
+
 def add_evaluate_model(sub) -> None:
     """Register ``counterscene evaluate-model``."""
     ev = sub.add_parser(
@@ -106,18 +111,26 @@ def add_evaluate_model(sub) -> None:
         help="open-loop prediction metrics of a world model vs constant velocity",
         description=(
             "Predict every agent of freshly generated scenes (the first --scenes safe seeds from "
-            "--seed) or of a ScenarioNet directory, and report ADE/FDE at 1, 2, 3 s and the full "
-            "horizon (one sample, and the best of --samples), plus the off-road rate."
+            "--seed), of dataset directories, or of real logs (ScenarioNet or CommonRoad), and "
+            "report ADE/FDE at 1, 2, 3 s and the full horizon (one sample, and the best of "
+            "--samples) and the off-road rate, for all agents and split by their speed now "
+            "(parked < 0.5 m/s <= slow < 3 m/s <= moving)."
         ),
     )
     ev_src = ev.add_mutually_exclusive_group(required=True)
     ev_src.add_argument("--scenario", choices=SCENARIO_CHOICES)
     ev_src.add_argument("--scenarionet", metavar="DIR", help="ScenarioNet .pkl file or directory")
     ev_src.add_argument(
+        "--commonroad", metavar="DIR", help="CommonRoad XML scenario file or directory"
+    )
+    ev_src.add_argument(
         "--data", nargs="+", metavar="DIR", help="dataset directories or shards (pooled)"
     )
     ev.add_argument(
-        "--scenes", type=int, default=50, help="scenes (per --data dataset; default 50)"
+        "--scenes",
+        type=int,
+        help=f"scenes: generated, or the first of each --data dataset (default "
+        f"{DEFAULT_EVAL_SCENES}); the first of a real-log source (default: all)",
     )
     add_seed_flag(ev, 100000, "first seed (default 100000)")
     add_model_flag(ev)
@@ -133,8 +146,52 @@ def add_evaluate_model(sub) -> None:
     ev.set_defaults(func=_cmd_evaluate_model)
 
 
+def _evaluation_scenes(args: argparse.Namespace) -> list:
+    """The scenes of ``evaluate-model``'s source (``--scenario``, ``--data``, ``--scenarionet``
+    or ``--commonroad``), capped by ``--scenes``."""
+    if args.scenes is not None and args.scenes < 1:
+        raise ValueError(f"--scenes must be >= 1, got {args.scenes}")
+    if args.scenario:
+        from counterscene_env.scene.highway import generate
+
+        # The first --scenes safe seeds from --seed, as `counterscene generate` picks them.
+        scenes, seed = [], args.seed
+        while len(scenes) < (args.scenes or DEFAULT_EVAL_SCENES):
+            scenes.append(generate(args.scenario, seed))
+            seed = scenes[-1].metadata["seed"] + 1
+        return scenes
+    if args.data:  # the first --scenes of each dataset
+        from counterscene_env.scene.datagen import iter_scenes
+
+        n = args.scenes or DEFAULT_EVAL_SCENES
+        return [s for d in args.data for s, _ in itertools.islice(iter_scenes(Path(d)), n)]
+    return _real_scenes(args)
+
+
+def _real_scenes(args: argparse.Namespace) -> list:
+    """The scenes of ``--scenarionet`` or ``--commonroad`` DIR: all, or the first ``--scenes``."""
+    from counterscene_env.config import COMMONROAD_PREFIX, SCENARIONET_PREFIX
+    from counterscene_env.scene.sources import spec_path, stored_scenes
+
+    spec = (
+        SCENARIONET_PREFIX + args.scenarionet
+        if args.scenarionet
+        else COMMONROAD_PREFIX + args.commonroad
+    )
+    if not spec_path(spec).exists():
+        raise FileNotFoundError(f"{spec_path(spec)}: no such file or directory")
+    try:
+        # stored_scenes imports the CommonRoad loader only for a commonroad: spec, so the
+        # other sources never need its dependencies.
+        scenes = list(itertools.islice(stored_scenes(spec), args.scenes))
+    except ImportError as exc:
+        raise RuntimeError(f"cannot read {spec}: {exc}") from exc
+    if not scenes:
+        raise FileNotFoundError(f"{spec_path(spec)}: no scenes")
+    return scenes
+
+
 def _cmd_evaluate_model(args: argparse.Namespace) -> int:
-    from counterscene_env.scene.datagen import iter_scenes
     from counterscene_env.world_model.evaluate import evaluate_model
 
     model = load_model(args.model)
@@ -142,32 +199,27 @@ def _cmd_evaluate_model(args: argparse.Namespace) -> int:
         if args.lane_steering < 0:
             raise ValueError(f"--lane-steering must be >= 0, got {args.lane_steering}")
         model.config = model.config.replace(lane_steering=args.lane_steering)
-    if args.scenario:
-        from counterscene_env.scene.highway import generate
-
-        # The first --scenes safe seeds from --seed, as `counterscene generate` picks them.
-        scenes, seed = [], args.seed
-        while len(scenes) < args.scenes:
-            scenes.append(generate(args.scenario, seed))
-            seed = scenes[-1].metadata["seed"] + 1
-    else:
-        if args.scenarionet:
-            scenes = [s for s, _ in iter_scenes(Path(args.scenarionet))]
-        else:  # the first --scenes of each dataset
-            scenes = [
-                s for d in args.data for s, _ in itertools.islice(iter_scenes(Path(d)), args.scenes)
-            ]
+    scenes = _evaluation_scenes(args)
     result = evaluate_model(model, scenes, args.samples, seed=0, progress=not args.quiet)
     result["source"] = (
         f"{args.scenario} seeds from {args.seed}"
         if args.scenario
-        else str(args.scenarionet or args.data)
+        else str(args.scenarionet or args.commonroad or args.data)
     )
     if args.json:
         print(json.dumps(json_safe(result)))
         return 0
+    _print_evaluation(result)
+    return 0
+
+
+def _print_evaluation(result: dict) -> None:
+    """The text report of ``evaluate-model``: the pooled table, then ADE per speed bin."""
+    skipped = result["skipped_scenes"]
     print(
-        f"{result['scenes']} scenes, {result['agents']} agents, {result['samples']} samples, "
+        f"{result['scenes']} scenes"
+        + (f" ({skipped} skipped: log ends at now)" if skipped else "")
+        + f", {result['agents']} agents, {result['samples']} samples, "
         f"horizon {result['horizon_s']:.1f} s ({result['source']})"
     )
     hz = list(result["model"]["ade"])
@@ -185,7 +237,16 @@ def _cmd_evaluate_model(args: argparse.Namespace) -> int:
         f"off-road: model {fmt(result['model']['offroad_rate'])}, constant velocity "
         f"{fmt(result['constant_velocity']['offroad_rate'])}, log {fmt(result['log_offroad_rate'])}"
     )
-    return 0
+    lo, hi = (fmt(float(e)) for e in result["speed_bins_m_s"])
+    print(f"ADE [m] by speed now (parked < {lo} m/s <= slow < {hi} m/s <= moving):")
+    for name, block in result["by_speed"].items():
+        head = f"  {name} ({block['agents']} agents)"
+        print(f"{head:22s}" + "".join(f"{h:>8s}" for h in hz))
+        for label, vals in (
+            ("model", block["model"]["ade"]),
+            ("const. vel.", block["constant_velocity"]["ade"]),
+        ):
+            print(f"{'    ' + label:22s}" + "".join(f"{fmt(vals[h]):>8s}" for h in hz))
 
 
 def add_bench(sub) -> None:

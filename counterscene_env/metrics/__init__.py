@@ -35,6 +35,7 @@ from counterscene_env.metrics.common import (
     agent_index,
     horizon_steps,
     rollout_steps,
+    wilson_interval,
 )
 from counterscene_env.metrics.realism import (
     ade_fde,
@@ -92,4 +93,5 @@ __all__ = [
     "parked_agents",
     "path_speeds",
     "rollout_steps",
+    "wilson_interval",
 ]

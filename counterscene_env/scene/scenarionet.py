@@ -52,7 +52,13 @@ from typing import Any
 import numpy as np
 
 from counterscene_env.geometry import wrap_angle
-from counterscene_env.scene.core import DEFAULT_DT, Scene, SceneError, drop_impossible_jumps
+from counterscene_env.scene.core import (
+    DEFAULT_DT,
+    Scene,
+    SceneError,
+    default_current_index,
+    drop_impossible_jumps,
+)
 from counterscene_env.scene.safe_pickle import ALLOWED_GLOBALS, UnsafePickleError, safe_load
 from counterscene_env.scene.scenarionet_map import MapError, road_from_features
 
@@ -126,13 +132,14 @@ def read_scenario_description(path: str | os.PathLike) -> dict:
     return data
 
 
-def load_scenarionet(path: str | os.PathLike, current_index: int = 30) -> Scene:
+def load_scenarionet(path: str | os.PathLike, current_index: int | None = None) -> Scene:
     """Load a ScenarioNet scenario pickle as a 10 Hz :class:`Scene`.
 
     Args:
         path: a ScenarioNet ``*.pkl`` scenario file.
         current_index: the "now" step of the returned scene (in 10 Hz steps, on the 0.1 s
-            grid); 30 gives 3 s of history.
+            grid); None: 30 (3 s of history), or for a short log the last step but one if
+            that leaves 1 s of history (``core.default_current_index``).
 
     Returns:
         A scene with the ego at row 0, ``dt = 0.1`` s, ``positions`` ``[N, T, 2]`` m,
@@ -158,14 +165,14 @@ def load_scenarionet(path: str | os.PathLike, current_index: int = 30) -> Scene:
 
 
 def scene_from_description(
-    sd: Mapping[str, Any], source: str = "<memory>", current_index: int = 30
+    sd: Mapping[str, Any], source: str = "<memory>", current_index: int | None = None
 ) -> Scene:
     """Convert an already loaded ScenarioNet scenario dict (see :func:`load_scenarionet`).
 
     Args:
         sd: the scenario description (``metadata``, ``tracks``, ``map_features``).
         source: the file name, used in error messages and ``metadata["source_file"]``.
-        current_index: the "now" step, in 10 Hz steps.
+        current_index: the "now" step, in 10 Hz steps (None: see :func:`load_scenarionet`).
     """
     for key in ("metadata", "tracks", "map_features"):
         if not isinstance(sd.get(key), Mapping):
@@ -175,6 +182,8 @@ def scene_from_description(
     grid = _time_grid(meta, tracks.num_source_steps, source)
     positions, yaws, speeds, valid = grid.apply(tracks)
     num_steps = positions.shape[1]
+    if current_index is None:
+        current_index = default_current_index(num_steps, source)
     if not 0 <= current_index < num_steps:
         raise ScenarioNetError(
             f"{source}: current_index {current_index} outside the log's {num_steps} steps at 10 Hz"

@@ -9,6 +9,10 @@ any of these (each episode picks one uniformly).
 - :class:`SceneSource` draws one scene per env reset from the generator the env passes, so the
   same env seed gives the same scenes.
 - :func:`scenes_for` gives the scene of each episode of a stress run in order.
+
+A stored scene too short for an episode (no step after its "now", or its ego absent then:
+``core.playable``) is skipped and counted in :data:`SKIPPED`; an episode on a short log ends
+with the log (``ClosedLoop`` caps its length at the log's last step).
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from counterscene_env.config import COMMONROAD_PREFIX, SCENARIONET_PREFIX, Scenario
-from counterscene_env.scene.core import Scene
+from counterscene_env.scene.core import Scene, playable
 
 #: Generated scenes take their seed from [0, SEED_RANGE).
 SEED_RANGE = 2**31 - 1
@@ -45,18 +49,30 @@ def spec_path(spec: str) -> Path:
     return Path(spec.removeprefix(SCENARIONET_PREFIX).removeprefix(COMMONROAD_PREFIX))
 
 
+#: Stored scenes skipped as too short for an episode, by spec (this process).
+SKIPPED: dict[str, int] = {}
+
+
 def stored_scenes(spec: str) -> Iterator[Scene]:
-    """The scenes of a stored spec (``scenarionet:DIR``, ``commonroad:DIR``, a dataset
-    directory or shard), in order."""
+    """The playable scenes of a stored spec (``scenarionet:DIR``, ``commonroad:DIR``, a
+    dataset directory or shard), in order; the others are counted in :data:`SKIPPED`."""
     if spec.startswith(COMMONROAD_PREFIX):
         from counterscene_env.scene.commonroad import iter_commonroad
 
-        yield from iter_commonroad(spec_path(spec))
-        return
-    from counterscene_env.scene.datagen import iter_scenes
+        scenes: Iterator[Scene] = iter_commonroad(spec_path(spec))
+    else:
+        from counterscene_env.scene.datagen import iter_scenes
 
-    for scene, _ in iter_scenes(spec_path(spec)):
-        yield scene
+        def count(_name: str) -> None:
+            SKIPPED[spec] += 1
+
+        scenes = (scene for scene, _ in iter_scenes(spec_path(spec), on_short=count))
+    SKIPPED[spec] = 0
+    for scene in scenes:
+        if playable(scene):
+            yield scene
+        else:
+            SKIPPED[spec] += 1
 
 
 class SceneSource:

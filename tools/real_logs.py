@@ -1,0 +1,275 @@
+"""Real logs, measured: what loads, how the maps fit the logs, and where selection finds an
+adversary. The evaluation behind docs/scenes.md ("Real logs, measured").
+
+    python tools/real_logs.py --scenarionet nuscenes=../shared/data/nuscenes_mini_scenarionet \
+        --scenarionet waymo=../shared/data/waymo_scenarionet --commonroad ngsim=/tmp/cr \
+        --plots 2 --out reports/real_logs
+
+Per source (``NAME=DIR``; ``--scenarionet`` and ``--commonroad`` repeat):
+
+- loading: scenes, agents by type, what the importer repaired or dropped, load time;
+- the factual log against its own map, over the whole log: the share of vehicle positions
+  off the road (all vehicles; moving ones, over 1 m/s by ``metrics.path_speeds``) with a
+  95 % Wilson interval over positions (positions of one track are correlated: read the
+  interval as a floor on the uncertainty), ORR split parked / moving, and the ego's factual
+  collision rate (ego CR, which must be 0: a log where the ego hits someone is no test);
+- causal selection on the factual future from the scene's "now" (``adversary/``): scenes with
+  a candidate in a paper tier, scenes with an adversary once the strict gates apply, and for
+  the scenes left without one, how many have all their tiered candidates failing each gate;
+- ``--plots K``: the drivable area over the log for the first K scenes, PNG: moving vehicles'
+  positions green on the road and red off it, parked ones grey or orange, the ego blue.
+
+Writes ``OUT/real_logs.json`` and ``OUT/real_logs.md``; timings are kept apart from the
+results (``timing`` in the JSON).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from counterscene_env.adversary.conflicts import (
+    MIN_JOINT_STEPS,
+    STRICT_GATES,
+    check_tracks,
+    mine,
+    strict_gate_failures,
+)
+from counterscene_env.metrics import evaluate_scene, path_speeds, wilson_interval
+from counterscene_env.scene.core import Scene
+
+MOVING_SPEED = 1.0  # [m/s] the issue's "moving" positions
+HORIZON_STEPS = 100  # [steps] the selection looks this far into the factual future (10 s)
+
+
+def load_source(kind: str, path: str) -> tuple[list[Scene], list[float], dict]:
+    """Every scene of a source, its load times [s], and the files skipped as too short."""
+    skipped: Counter = Counter()
+    scenes, times = [], []
+    if kind == "scenarionet":
+        from counterscene_env.scene.datagen import iter_scenes
+
+        def short(name: str) -> None:
+            skipped["too_short"] += 1
+
+        it = iter_scenes(path, on_short=short)
+        while True:
+            start = time.perf_counter()
+            try:
+                scene, _ = next(it)
+            except StopIteration:
+                break
+            scenes.append(scene)
+            times.append(time.perf_counter() - start)
+    else:
+        from counterscene_env.scene.commonroad import iter_commonroad
+
+        it = iter_commonroad(path)
+        while True:
+            start = time.perf_counter()
+            try:
+                scene = next(it)
+            except StopIteration:
+                break
+            scenes.append(scene)
+            times.append(time.perf_counter() - start)
+    return scenes, times, dict(skipped)
+
+
+def factual_fit(scene: Scene) -> dict:
+    """Off-road counts of the logged vehicles over the whole log, and the factual metrics."""
+    whole = scene.replace(current_index=0)
+    veh = scene.valid & scene.vehicle_mask[:, None]
+    off = scene.road.off_road(scene.positions) & veh
+    moving = veh & (path_speeds(scene) > MOVING_SPEED)
+    m = evaluate_scene(whole)
+    return {
+        "vehicle_positions": int(veh.sum()),
+        "vehicle_off": int(off.sum()),
+        "moving_positions": int(moving.sum()),
+        "moving_off": int((off & moving).sum()),
+        "orr_parked": m["orr_parked"],
+        "orr_moving": m["orr_moving"],
+        "ego_cr": m["cr"],
+        "non_ego_cr": m["cr_non_ego"],
+    }
+
+
+def selection_gates(scene: Scene) -> dict:
+    """Causal mining on the factual future from "now": tiered candidates and the gates."""
+    lo = scene.current_index + 1
+    hi = min(scene.num_steps, lo + HORIZON_STEPS)
+    tracks = check_tracks(
+        scene.positions[:, lo:hi],
+        scene.valid[:, lo:hi],
+        scene.ego_index,
+        speeds=scene.speeds[:, lo:hi],
+        dt=scene.dt,
+        min_joint_steps=MIN_JOINT_STEPS,
+    )
+    eligible = scene.vehicle_mask.copy()
+    paper = [c for c in mine(tracks, eligible, lo, False, MIN_JOINT_STEPS) if c.tier is not None]
+    fails = [strict_gate_failures(tracks, c, lo) for c in paper]
+    return {
+        "paper_candidates": len(paper),
+        "adversary": any(not f for f in fails),
+        "all_fail": [g for g in STRICT_GATES if paper and all(g in f for f in fails)],
+    }
+
+
+def rate(k: int, n: int) -> dict:
+    lo, hi = wilson_interval(k, n)
+    return {"k": k, "n": n, "rate": k / n if n else None, "ci95": [lo, hi]}
+
+
+def summarise(name: str, scenes: list[Scene], times: list[float], skipped: dict) -> dict:
+    """One source's results (and its timing, kept apart)."""
+    types: Counter = Counter()
+    repairs: Counter = Counter()
+    dropped: Counter = Counter()
+    for s in scenes:
+        types.update(s.agent_types.tolist())
+        for what in s.metadata.get("repairs", {}).values():
+            repairs.update(w.split(":")[0].lstrip("0123456789 ") for w in what)
+        dropped.update(
+            str(w).split("(")[0].strip() for w in s.metadata.get("dropped_tracks", {}).values()
+        )
+    fits = [factual_fit(s) for s in scenes]
+    gates = [selection_gates(s) for s in scenes]
+    no_adv = [g for g in gates if not g["adversary"]]
+    return {
+        "source": name,
+        "scenes": len(scenes),
+        "skipped": skipped,
+        "agents_by_type": dict(types),
+        "repairs": dict(repairs),
+        "dropped": dict(dropped),
+        "vehicle_off_road": rate(
+            sum(f["vehicle_off"] for f in fits), sum(f["vehicle_positions"] for f in fits)
+        ),
+        "moving_off_road": rate(
+            sum(f["moving_off"] for f in fits), sum(f["moving_positions"] for f in fits)
+        ),
+        "orr_parked_mean": float(np.nanmean([f["orr_parked"] for f in fits])),
+        "orr_moving_mean": float(np.nanmean([f["orr_moving"] for f in fits])),
+        "factual_ego_cr": rate(int(sum(f["ego_cr"] for f in fits)), len(fits)),
+        "factual_non_ego_cr": rate(int(sum(f["non_ego_cr"] for f in fits)), len(fits)),
+        "selection": {
+            "scenes_with_paper_tier_candidate": sum(g["paper_candidates"] > 0 for g in gates),
+            "scenes_with_adversary_strict": sum(g["adversary"] for g in gates),
+            "scenes_without_candidate": sum(g["paper_candidates"] == 0 for g in gates),
+            "without_adversary_all_candidates_fail": {
+                gate: sum(gate in g["all_fail"] for g in no_adv) for gate in STRICT_GATES
+            },
+        },
+        "per_scene": [
+            {"scenario_id": s.scenario_id, **f, **g}
+            for s, f, g in zip(scenes, fits, gates, strict=True)
+        ],
+        "timing": {
+            "load_s_median": float(np.median(times)) if times else None,
+            "load_s_total": float(np.sum(times)),
+        },
+    }
+
+
+def plot_scene(scene: Scene, path: Path) -> None:
+    """The drivable area over the whole log (module docstring)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import shapely.plotting
+
+    fig, ax = plt.subplots(figsize=(9, 9))
+    shapely.plotting.plot_polygon(
+        scene.road.drivable_area, ax=ax, add_points=False, facecolor="#ccd4ee", edgecolor="none"
+    )
+    if scene.road.extent is not None:
+        shapely.plotting.plot_polygon(
+            scene.road.extent, ax=ax, add_points=False, facecolor="none", edgecolor="0.6", ls="--"
+        )
+    for c in scene.road.lane_centerlines:
+        ax.plot(c[:, 0], c[:, 1], "-", color="#8890b0", lw=0.3)
+    veh = scene.valid & scene.vehicle_mask[:, None]
+    off = scene.road.off_road(scene.positions)
+    moving = veh & (path_speeds(scene) > MOVING_SPEED)
+    parked = veh & ~moving
+    style = [
+        (parked & ~off, "0.55", 2, "parked, on road"),
+        (parked & off, "orange", 2, "parked, off road"),
+        (moving & ~off, "green", 1, "moving, on road"),
+        (moving & off, "red", 3, "moving, off road"),
+    ]
+    for mask, color, size, label in style:
+        p = scene.positions[mask]
+        ax.plot(p[:, 0], p[:, 1], ".", color=color, ms=size, label=f"{label} ({mask.sum()})")
+    e = scene.ego_index
+    p = scene.positions[e, scene.valid[e]]
+    ax.plot(p[:, 0], p[:, 1], "-", color="blue", lw=1.2, label="ego")
+    p = scene.positions[veh]
+    ax.set_xlim(p[:, 0].min() - 20, p[:, 0].max() + 20)
+    ax.set_ylim(p[:, 1].min() - 20, p[:, 1].max() + 20)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"{scene.scenario_id}: drivable area (blue), map extent (dashed)")
+    ax.legend(loc="upper right", fontsize=7)
+    fig.savefig(path, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+
+
+def markdown(results: list[dict]) -> str:
+    def pct(r: dict) -> str:
+        if r["rate"] is None:
+            return "n/a"
+        lo, hi = r["ci95"]
+        return f"{100 * r['rate']:.2f} % [{100 * lo:.2f}, {100 * hi:.2f}] ({r['k']}/{r['n']})"
+
+    lines = [
+        "| source | scenes | vehicle positions off-road | moving (>1 m/s) off-road | "
+        "ORR parked / moving (mean) | factual ego CR | adversary (strict) / paper tier |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        sel = r["selection"]
+        lines.append(
+            f"| {r['source']} | {r['scenes']} | {pct(r['vehicle_off_road'])} | "
+            f"{pct(r['moving_off_road'])} | {r['orr_parked_mean']:.3f} / "
+            f"{r['orr_moving_mean']:.3f} | {pct(r['factual_ego_cr'])} | "
+            f"{sel['scenes_with_adversary_strict']} / {sel['scenes_with_paper_tier_candidate']} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenarionet", action="append", default=[], metavar="NAME=DIR")
+    ap.add_argument("--commonroad", action="append", default=[], metavar="NAME=DIR")
+    ap.add_argument("--plots", type=int, default=0, help="plot the first K scenes per source")
+    ap.add_argument("--out", required=True, metavar="DIR")
+    args = ap.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results = []
+    sources = [("scenarionet", s) for s in args.scenarionet]
+    sources += [("commonroad", s) for s in args.commonroad]
+    for kind, spec in sources:
+        name, _, path = spec.partition("=")
+        scenes, times, skipped = load_source(kind, path)
+        results.append(summarise(name, scenes, times, skipped))
+        for scene in scenes[: args.plots]:
+            plot_scene(scene, out / f"{name}_{scene.scenario_id.replace('/', '_')}.png")
+        print(markdown(results[-1:]), flush=True)
+    (out / "real_logs.json").write_text(json.dumps(results, indent=1, default=float) + "\n")
+    (out / "real_logs.md").write_text(markdown(results))
+    print(markdown(results))
+
+
+if __name__ == "__main__":
+    main()
