@@ -562,3 +562,19 @@ def test_beyond_the_map_crop_is_not_off_road(tmp_path):
     assert road.extent is not None
     assert road.off_road(np.array([20.0, 20.0]))  # inside the crop, off the lanes
     assert not road.off_road(np.array([500.0, 0.0]))  # beyond every map feature: unknown
+
+
+def test_short_logs_start_later_or_are_skipped_and_counted(tmp_path):
+    """A log under 3 s + 1 step starts at its last step but one (if 1 s of history remains);
+    a shorter one is too short for any episode: stored specs skip it and count it."""
+    from counterscene_env.scene.sources import SKIPPED, stored_scenes
+
+    n = 20
+    scene = load_scenarionet(_write(tmp_path, _scenario(n=n), "short.pkl"))
+    assert scene.current_index == n - 2
+    _write(tmp_path, _scenario(n=8), "tiny.pkl")
+    with pytest.raises(SceneError, match=r"tiny\.pkl has 8 steps: too short"):
+        load_scenarionet(tmp_path / "tiny.pkl")
+    spec = f"scenarionet:{tmp_path}"
+    assert [s.metadata["source_file"] for s in stored_scenes(spec)] == ["short.pkl"]
+    assert SKIPPED[spec] == 1

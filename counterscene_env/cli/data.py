@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 
@@ -21,7 +22,7 @@ def add_generate(sub) -> None:
     """Register ``counterscene generate``."""
     gen = sub.add_parser(
         "generate",
-        help="generate a dataset of scenes (highway-env traffic or ScenarioNet logs)",
+        help="generate a dataset of scenes (highway-env traffic, ScenarioNet or CommonRoad logs)",
         description=(
             "Write scenes as compressed shards plus manifest.json into --out. Highway-env: the "
             "first --scenes safe seeds from --seed. Resumable: rerun the same command."
@@ -34,6 +35,17 @@ def add_generate(sub) -> None:
         help="highway-env road to record traffic on",
     )
     src.add_argument("--from-scenarionet", metavar="DIR", help="convert ScenarioNet .pkl files")
+    src.add_argument(
+        "--from-commonroad",
+        metavar="DIR",
+        help="convert CommonRoad .xml scenarios (one scene per distinct recording; needs the "
+        "commonroad extra)",
+    )
+    gen.add_argument(
+        "--all-egos",
+        action="store_true",
+        help="CommonRoad: one scene per logged vehicle that can be the ego, not one per file",
+    )
     gen.add_argument("--scenes", type=int, default=100, help="scenes to generate (default 100)")
     add_seed_flag(gen, 0, "first seed (default 0)")
     gen.add_argument("--out", required=True, metavar="DIR", help="output dataset directory")
@@ -45,10 +57,23 @@ def add_generate(sub) -> None:
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
-    from counterscene_env.scene.datagen import convert_scenarionet, generate_dataset
+    from counterscene_env.scene.datagen import (
+        convert_commonroad,
+        convert_scenarionet,
+        generate_dataset,
+    )
 
     start = time.perf_counter()
-    if args.from_scenarionet:
+    if args.from_commonroad:
+        manifest = convert_commonroad(
+            args.from_commonroad,
+            args.out,
+            all_egos=args.all_egos,
+            shard_size=args.shard_size,
+            workers=args.workers,
+            progress=not args.quiet,
+        )
+    elif args.from_scenarionet:
         manifest = convert_scenarionet(
             args.from_scenarionet,
             args.out,
@@ -126,11 +151,10 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
 
     def stat(key: str) -> dict:
         v = np.array([r[key] for r in rows], dtype=float)
-        return {
-            "mean": float(np.nanmean(v)),
-            "min": float(np.nanmin(v)),
-            "max": float(np.nanmax(v)),
-        }
+        v = v[~np.isnan(v)]  # e.g. ORR of parked cars in a scene without one
+        if not v.size:
+            return {"mean": math.nan, "min": math.nan, "max": math.nan}
+        return {"mean": float(v.mean()), "min": float(v.min()), "max": float(v.max())}
 
     summary = {"scenes": len(rows)} | {k: stat(k) for k in _INSPECT_COLUMNS[1:] if k != "steps"}
     if args.json:

@@ -7,8 +7,11 @@ A rejected seed (unsafe factual log) is listed in the manifest with its reason a
 the seeds after it, so the dataset is always "the first N safe seeds from S0", whatever the
 number of workers, and no two scenes share a seed.
 
-Real logs (``counterscene generate --from-scenarionet SRC --out DIR``): the sorted ``.pkl``
-files are cut into blocks the same way; a file that fails to load is listed with its error.
+Real logs (``counterscene generate --from-scenarionet SRC --out DIR``, or
+``--from-commonroad SRC``): the sorted ``.pkl`` (``.xml``) files are cut into blocks the same
+way; a file that fails to load is listed with its error. CommonRoad files that repeat another
+file's traffic (the same recording with another planning problem) are listed in the manifest's
+``duplicates`` and not converted.
 
 Resuming: the manifest is rewritten after every finished shard; a rerun of the same command
 skips the shards it lists, so an interrupted run loses at most the shards in flight.
@@ -95,6 +98,42 @@ def convert_scenarionet(
 
     def block_args(k: int, limit: int) -> tuple:
         return (_convert_block, str(out), k, blocks[k])
+
+    return _build(Path(out), params, None, block_args, len(blocks), workers, progress)
+
+
+def convert_commonroad(
+    src: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    all_egos: bool = False,
+    shard_size: int = 50,
+    workers: int = 1,
+    progress: bool = True,
+) -> dict:
+    """Convert the CommonRoad ``.xml`` files under ``src`` into shards in ``out``: one scene
+    per distinct recording (files that repeat another's traffic are listed, not converted),
+    or with ``all_egos`` one per ego choice. Returns the manifest."""
+    from counterscene_env.scene.commonroad import iter_commonroad
+
+    report: dict = {}
+    for _ in iter_commonroad(src, report=report):  # a first pass finds the duplicates
+        pass
+    files = sorted(str(p) for p in Path(src).rglob("*.xml") if p.name not in report["duplicates"])
+    listing = hashlib.sha256("\n".join(files).encode()).hexdigest()[:16]
+    params = {
+        "source": "commonroad",
+        "src": str(Path(src).resolve()),
+        "shard_size": int(shard_size),
+        "all_egos": bool(all_egos),
+        "files": len(files),
+        "file_list_sha256": listing,
+        "duplicates": report["duplicates"],
+    }
+    blocks = [files[i : i + shard_size] for i in range(0, len(files), shard_size)]
+
+    def block_args(k: int, limit: int) -> tuple:
+        return (_convert_commonroad_block, str(out), k, blocks[k], all_egos)
 
     return _build(Path(out), params, None, block_args, len(blocks), workers, progress)
 
@@ -399,6 +438,21 @@ def _convert_block(out: str, k: int, files: list[str]) -> dict:
     return _save_block(
         out, k, scenes, rejected, [Path(s.metadata.get("source_file", "")).name for s in scenes]
     )
+
+
+def _convert_commonroad_block(out: str, k: int, files: list[str], all_egos: bool) -> dict:
+    from counterscene_env.scene.commonroad import iter_commonroad
+
+    scenes, rejected = [], []
+    for f in files:
+        report: dict = {}
+        start = time.perf_counter()
+        got = list(iter_commonroad(f, all_egos, skip_duplicates=False, report=report))
+        rejected += [[name, why] for name, why in report["skipped"].items()]
+        for scene in got:
+            scene.metadata["generation_time_s"] = (time.perf_counter() - start) / len(got)
+        scenes += got
+    return _save_block(out, k, scenes, rejected, [s.scenario_id for s in scenes])
 
 
 def _save_block(out: str, k: int, scenes: list, rejected: list, ids: list) -> dict:

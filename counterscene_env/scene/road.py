@@ -271,6 +271,18 @@ def _json_default(obj):
 
 
 # ---------------------------------------------------------------------- helpers
+def fill_small_holes(area: shapely.Geometry, max_hole: float) -> shapely.Geometry:
+    """``area`` with every interior ring enclosing less than ``max_hole`` m^2 filled (slivers
+    between lane surfaces that traffic crosses); an area with no polygon comes back empty."""
+    parts = []
+    for poly in getattr(area, "geoms", [area]):
+        if poly.geom_type != "Polygon" or poly.is_empty:
+            continue
+        holes = [r for r in poly.interiors if shapely.Polygon(r).area >= max_hole]
+        parts.append(shapely.Polygon(poly.exterior, holes))
+    return shapely.union_all(parts) if parts else shapely.Polygon()
+
+
 def _lane_samples(lane: AbstractLane) -> np.ndarray:
     """Longitudinal sample positions along a lane, m: both ends, about SAMPLE_SPACING apart."""
     if isinstance(lane, StraightLane) and not isinstance(lane, SineLane):

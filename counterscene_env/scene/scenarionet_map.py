@@ -60,7 +60,7 @@ import numpy as np
 import shapely
 
 from counterscene_env.scene.core import SceneError
-from counterscene_env.scene.road import RoadMap
+from counterscene_env.scene.road import RoadMap, fill_small_holes
 
 DEFAULT_LANE_WIDTH = 3.5  # [m] lanes with neither a width field nor a polygon
 LANE_WIDTH_RANGE = (2.5, 6.0)  # [m] clip for widths read or estimated from the file
@@ -128,7 +128,7 @@ def road_from_features(features: Mapping[Any, Any], source: str) -> tuple[RoadMa
         parts.append(_even_odd_fill(rings))
     if feats.edges and not lanes.is_empty:
         parts.append(_kerb_strips(feats.edges, lanes, EDGE_REACH))
-    area = _fill_small_holes(shapely.union_all(parts), HOLE_FILL_AREA)
+    area = fill_small_holes(shapely.union_all(parts), HOLE_FILL_AREA)
     points = np.concatenate([np.zeros((0, 2)), *feats.extent_points])
     extent = shapely.MultiPoint(points).convex_hull if len(points) >= 3 else None
     if extent is not None and extent.geom_type != "Polygon":
@@ -316,16 +316,3 @@ def _kerb_strips(
             continue
         strips.append(shapely.intersection(sides[int(np.argmax(overlap))], near))
     return shapely.union_all(strips) if strips else shapely.Polygon()
-
-
-def _fill_small_holes(area: shapely.Geometry, max_hole: float) -> shapely.Geometry:
-    """The area with every interior ring enclosing less than ``max_hole`` m^2 filled."""
-    parts = []
-    for poly in getattr(area, "geoms", [area]):
-        if poly.geom_type != "Polygon" or poly.is_empty:
-            continue
-        holes = [r for r in poly.interiors if shapely.Polygon(r).area >= max_hole]
-        parts.append(shapely.Polygon(poly.exterior, holes))
-    if not parts:
-        return shapely.Polygon()
-    return shapely.union_all(parts)

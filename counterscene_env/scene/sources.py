@@ -56,10 +56,11 @@ SKIPPED: dict[str, int] = {}
 def stored_scenes(spec: str) -> Iterator[Scene]:
     """The playable scenes of a stored spec (``scenarionet:DIR``, ``commonroad:DIR``, a
     dataset directory or shard), in order; the others are counted in :data:`SKIPPED`."""
+    report: dict = {}
     if spec.startswith(COMMONROAD_PREFIX):
         from counterscene_env.scene.commonroad import iter_commonroad
 
-        scenes: Iterator[Scene] = iter_commonroad(spec_path(spec))
+        scenes: Iterator[Scene] = iter_commonroad(spec_path(spec), report=report)
     else:
         from counterscene_env.scene.datagen import iter_scenes
 
@@ -73,6 +74,7 @@ def stored_scenes(spec: str) -> Iterator[Scene]:
             yield scene
         else:
             SKIPPED[spec] += 1
+    SKIPPED[spec] += report.get("too_short", 0)
 
 
 class SceneSource:

@@ -1,0 +1,490 @@
+"""Import CommonRoad XML scenarios (e.g. NGSIM US-101, Lankershim, Peachtree) as Scenes.
+
+One job: turn a CommonRoad file, parsed by ``commonroad-io``'s ``CommonRoadFileReader`` (an
+optional extra: ``pip install "counterscene-env[commonroad]"``), into the scene contract.
+
+Agents: the file must have 0.1 s steps; scene step t is the file's time step t, and the log ends
+at the last state of any obstacle. Dynamic obstacles of type car, truck, bus, taxi, motorcycle,
+priorityVehicle or parkedVehicle are ``"vehicle"``, bicycle ``"cyclist"``, pedestrian
+``"pedestrian"``, any other ``"other"``. Static obstacles are ``"other"`` whatever their type
+(the world model drives only vehicles, and must not move them) and valid at every step. A track
+is the initial state plus the trajectory's states (an obstacle without a prediction has only its
+initial state); steps without a state are invalid. ``velocity`` is the signed speed along the
+heading (m/s). Where any state of a track lacks it, the track's speeds are derived from its
+positions (mean of the backward and forward differences that exist, signed by the heading; newer
+commonroad-io silently fills a missing initial velocity with 0) and its id is listed in
+``metadata["derived_speed"]``. Extents are a rectangle's (length, width), else the bounding box
+of a circle or polygon; a rectangle's ``origin_x_shift`` (newer commonroad-io) is undone so that
+positions are box centres. Obstacles with a set-based prediction (occupancy sets, not a log) or
+states without a point position or orientation are dropped, with the reason, into
+``metadata["dropped"]``. Rows: the ego, then by obstacle id.
+
+Ego: the planning problem's ego is a planning task, not a logged car (in the NGSIM files its
+initial state matches no obstacle), so it is ignored. An ego choice is a dynamic vehicle whose
+mean speed over its valid steps is above :data:`MIN_EGO_SPEED`, valid from
+:data:`MIN_HISTORY_STEPS` steps before "now" to one step after it, whose box overlaps no other
+agent's at any step where both are valid (15 of the 84 usable NGSIM recordings hold overlapping
+logged boxes; a factual log must not start from an ego collision). Best first: most valid
+steps, then by id.
+
+Short logs: "now" must leave one future step. A log shorter than ``current_index + 2`` steps
+gets ``current_index = num_steps - 2`` if that keeps :data:`MIN_HISTORY_STEPS` (1 s) of history,
+else :class:`CommonRoadError` ("too short"). ``metadata["history_steps"]`` counts the frames up
+to and including "now" (``current_index + 1``), ``metadata["future_steps"]`` those after it.
+
+Road: the lanelets, by ``scene/commonroad_map.py``.
+
+Duplicates: many files share their traffic and differ only in the planning problem.
+:func:`iter_commonroad` hashes each file's tracks (ids, types, validity, positions rounded to
+1 cm) and uses the first file (sorted by path) of each recording.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+import logging.handlers
+import os
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from counterscene_env.geometry import boxes_overlap, wrap_angle
+from counterscene_env.scene.commonroad_map import CommonRoadError, road_from_lanelets
+from counterscene_env.scene.core import (
+    AGENT_TYPES,
+    DEFAULT_DT,
+    MIN_HISTORY_STEPS,
+    Scene,
+    SceneError,
+    SceneTooShort,
+    drop_impossible_jumps,
+)
+from counterscene_env.scene.road import RoadMap
+
+__all__ = [
+    "CommonRoadError",
+    "CommonRoadTooShort",
+    "commonroad_egos",
+    "iter_commonroad",
+    "load_commonroad",
+]
+
+VEHICLE_TYPES = ("car", "truck", "bus", "taxi", "motorcycle", "priorityVehicle", "parkedVehicle")
+#: Agent type of each CommonRoad obstacle type of a dynamic obstacle; any other is "other".
+AGENT_TYPE = {
+    **dict.fromkeys(VEHICLE_TYPES, "vehicle"),
+    "bicycle": "cyclist",
+    "pedestrian": "pedestrian",
+}
+MIN_EGO_SPEED = 1.0  # [m/s] mean speed above which a vehicle is "moving" (an ego choice)
+HASH_RESOLUTION = 0.01  # [m] positions are rounded to this before hashing the traffic
+INSTALL_HINT = 'pip install "counterscene-env[commonroad]"'
+_EGO_RULE = f"a vehicle above {MIN_EGO_SPEED:g} m/s mean speed, present around now, no overlap"
+
+
+class CommonRoadTooShort(CommonRoadError, SceneTooShort):
+    """A recording too short for any episode (:func:`iter_commonroad` skips and counts it)."""
+
+
+@dataclass
+class _Tracks:
+    """The agents of one file on the 0.1 s grid, rows sorted by obstacle id."""
+
+    ids: list[str]
+    types: list[str]
+    positions: np.ndarray  # [N, T, 2] m, box centres
+    yaws: np.ndarray  # [N, T] rad
+    speeds: np.ndarray  # [N, T] m/s
+    valid: np.ndarray  # [N, T] bool
+    extents: np.ndarray  # [N, 2] m, (length, width)
+    notes: dict  # dropped, derived_speed, repaired_tracks (for the metadata)
+
+
+# ---------------------------------------------------------------------- public API
+def load_commonroad(
+    path: str | os.PathLike, ego: int | str | None = None, current_index: int = 30
+) -> Scene:
+    """Load one CommonRoad XML file as a 10 Hz :class:`Scene` (rules: module docstring).
+
+    Args:
+        path: a CommonRoad ``.xml`` scenario.
+        ego: obstacle id of the ego; None takes the default (first of :func:`commonroad_egos`).
+        current_index: the "now" step; moved earlier in a short log.
+
+    Returns:
+        The scene: ego at row 0, ``positions [N, T, 2]`` m, ``yaws [N, T]`` rad, ``speeds
+        [N, T]`` m/s, ``extents [N, 2]`` m, ``dt = 0.1`` s, ``scenario_id``
+        ``"<benchmark id>/ego=<id>"``.
+
+    Raises:
+        CommonRoadError: unreadable or malformed file, too short a log, no (or a bad) ego.
+        ImportError: ``commonroad-io`` is missing (the message says how to install it).
+    """
+    path = Path(path)
+    scenario, notes = _read_file(path)
+    tracks = _read_tracks(scenario, path.name)
+    return _scenes(scenario, tracks, path.name, current_index, notes, ego=ego)[0]
+
+
+def commonroad_egos(source: Any, current_index: int = 30) -> list[str]:
+    """Obstacle ids that are ego choices, best first (module docstring, "Ego").
+
+    Args:
+        source: a CommonRoad ``.xml`` path or a parsed commonroad-io ``Scenario``.
+        current_index: the "now" step the choices must be present around (moved earlier in a
+            short log, as in :func:`load_commonroad`).
+    """
+    if isinstance(source, str | os.PathLike):
+        scenario, name = _read_file(Path(source))[0], Path(source).name
+    else:
+        scenario, name = source, str(getattr(source, "scenario_id", "<scenario>"))
+    tracks = _read_tracks(scenario, name)
+    ci = _effective_index(tracks.valid.shape[1], current_index, name)
+    return [tracks.ids[r] for r in _ego_rows(tracks, ci)]
+
+
+def iter_commonroad(
+    dir_or_file: str | os.PathLike,
+    all_egos: bool = False,
+    *,
+    current_index: int = 30,
+    skip_duplicates: bool = True,
+    report: dict | None = None,
+) -> Iterator[Scene]:
+    """Scenes of the ``.xml`` files under a directory (sorted, recursive) or of one file: one
+    per distinct recording (default ego), or with ``all_egos`` one per ego choice.
+
+    Files that fail (too short, malformed, no ego) are skipped and reported, not raised.
+
+    Args:
+        skip_duplicates: skip files whose traffic an earlier file had; if False they are
+            yielded too, with ``metadata["duplicate_of"]`` naming that earlier file.
+        report: if given, filled (and kept current while iterating) with ``files``,
+            ``scenes``, ``duplicates`` (``{file: first file with that traffic}``),
+            ``skipped`` (``{file: reason}``) and ``too_short`` (how many of those were).
+    """
+    path = Path(dir_or_file)
+    files = sorted(path.rglob("*.xml")) if path.is_dir() else [path]
+    if not path.exists() or not files:
+        raise FileNotFoundError(f"{path}: no CommonRoad .xml files")
+    report = {} if report is None else report
+    report.update(files=len(files), scenes=0, duplicates={}, skipped={}, too_short=0)
+    seen: dict[str, str] = {}  # traffic hash -> first file with it
+    for f in files:
+        try:
+            scenario, notes = _read_file(f)
+            tracks = _read_tracks(scenario, f.name)
+            first = seen.setdefault(_traffic_hash(tracks), f.name)
+            duplicate_of = None if first == f.name else first
+            if duplicate_of:
+                report["duplicates"][f.name] = first
+                if skip_duplicates:
+                    continue
+            scenes = _scenes(scenario, tracks, f.name, current_index, notes, all_egos)
+        except CommonRoadError as exc:
+            report["skipped"][f.name] = str(exc)
+            report["too_short"] += isinstance(exc, SceneTooShort)
+            continue
+        report["scenes"] += len(scenes)
+        for scene in scenes:
+            scene.metadata["duplicate_of"] = duplicate_of
+            yield scene
+
+
+# ---------------------------------------------------------------------- reading
+@contextlib.contextmanager
+def _captured_notes(notes: list[str]) -> Iterator[None]:
+    """Collect what the reader says about a file (e.g. "Scenario tag 'illegal_cut_in' not
+    valid.": older versions warn, newer ones log) instead of printing it on the console.
+    DeprecationWarnings are about the package's own code, not the file: dropped."""
+    log, handler = logging.getLogger("commonroad"), logging.handlers.BufferingHandler(1 << 20)
+    handler.setLevel(logging.WARNING)
+    propagate = log.propagate
+    log.addHandler(handler)
+    log.propagate = False
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            yield
+    finally:
+        log.removeHandler(handler)
+        log.propagate = propagate
+    notes.extend(record.getMessage() for record in handler.buffer)
+    notes.extend(str(w.message) for w in caught if not issubclass(w.category, DeprecationWarning))
+
+
+def _read_file(path: Path) -> tuple[Any, list[str]]:
+    """The scenario parsed by ``CommonRoadFileReader`` and the reader's notes on the file."""
+    notes: list[str] = []
+    with _captured_notes(notes):
+        try:  # imported here: commonroad-io is an optional extra
+            from commonroad.common.file_reader import CommonRoadFileReader
+        except ImportError as exc:
+            raise ImportError(
+                f"reading CommonRoad files needs commonroad-io ({exc}): {INSTALL_HINT}"
+            ) from exc
+        if not path.is_file():
+            raise CommonRoadError(f"{path}: no such file")
+        try:
+            scenario, _planning_problems = CommonRoadFileReader(str(path)).open()
+        except Exception as exc:  # lxml, assertion, key errors alike: the file's fault
+            raise CommonRoadError(
+                f"{path.name}: not a readable CommonRoad file ({type(exc).__name__}: {exc})"
+            ) from exc
+    return scenario, sorted(set(notes))
+
+
+def _effective_index(num_steps: int, current_index: int, source: str) -> int:
+    """``current_index``, or ``num_steps - 2`` for a short log (module docstring)."""
+    if current_index < 0:
+        raise CommonRoadError(f"{source}: current_index must be >= 0, got {current_index}")
+    if current_index + 2 <= num_steps:
+        return current_index
+    if num_steps - 2 >= MIN_HISTORY_STEPS:
+        return num_steps - 2
+    raise CommonRoadTooShort(
+        f"{source}: recording too short: {num_steps} steps ({(num_steps - 1) * DEFAULT_DT:.1f} s)"
+        f" leave no {MIN_HISTORY_STEPS} steps of history before a future step"
+    )
+
+
+@contextlib.contextmanager
+def _file_fault(source: str, what: str) -> Iterator[None]:
+    """Turn an error from data of a type or shape not foreseen into a CommonRoadError: still
+    the file's fault, and said with its name rather than a traceback."""
+    try:
+        yield
+    except SceneError:
+        raise
+    except (TypeError, ValueError, AttributeError, IndexError, KeyError) as exc:
+        raise CommonRoadError(f"{source}: malformed {what} ({type(exc).__name__}: {exc})") from exc
+
+
+def _read_tracks(scenario: Any, source: str) -> _Tracks:
+    """The agents of a parsed scenario (module docstring, "Agents")."""
+    if abs(float(scenario.dt) - DEFAULT_DT) > 1e-9:
+        raise CommonRoadError(f"{source}: timeStepSize {scenario.dt} s; only 0.1 s is supported")
+    with _file_fault(source, "obstacle"):
+        rows, dropped = [], {}
+        obstacles = [(o, False) for o in scenario.dynamic_obstacles]
+        for obs, static in sorted(
+            obstacles + [(o, True) for o in scenario.static_obstacles],
+            key=lambda pair: int(pair[0].obstacle_id),
+        ):
+            states, why = _states(obs, static)
+            if why is None and (extent := _extent(obs.obstacle_shape)) is None:
+                why = f"unsupported shape {type(obs.obstacle_shape).__name__}"
+            if why is None:
+                rows.append((obs, static, states, extent))
+            else:
+                dropped[str(obs.obstacle_id)] = why
+        if not rows:
+            some = next(iter(dropped.items()), "none in the file")
+            raise CommonRoadError(f"{source}: no usable obstacle ({len(dropped)} dropped: {some})")
+        tracks = _stack(rows)
+    tracks.notes["dropped"] = dropped
+    return tracks
+
+
+def _states(obs: Any, static: bool) -> tuple[list[Any], str | None]:
+    """The logged states of an obstacle, or why it cannot be used."""
+    states = [obs.initial_state]
+    pred = None if static else obs.prediction
+    if pred is not None:
+        traj = getattr(pred, "trajectory", None)
+        if traj is None:
+            return [], f"{type(pred).__name__}: a prediction, not a logged trajectory"
+        states += list(traj.state_list)
+    for s in states:
+        if not isinstance(s.time_step, int | np.integer) or s.time_step < 0:
+            return [], f"a state at time {s.time_step!r}, not a step >= 0"
+        if np.shape(getattr(s, "position", None)) != (2,):
+            return [], "a state without a point position"
+        if getattr(s, "orientation", None) is None:
+            return [], "a state without orientation"
+    return states, None
+
+
+def _extent(shape: Any) -> tuple[float, float] | None:
+    """(length, width) m of an obstacle shape; circles and polygons by their bounding box."""
+    if hasattr(shape, "length") and hasattr(shape, "width"):
+        return float(shape.length), float(shape.width)
+    if hasattr(shape, "radius"):
+        return 2.0 * float(shape.radius), 2.0 * float(shape.radius)
+    vertices = getattr(shape, "vertices", None)
+    if vertices is not None and np.ndim(vertices) == 2 and len(vertices) >= 3:
+        size = np.ptp(np.asarray(vertices, dtype=np.float64)[:, :2], axis=0)
+        return float(size[0]), float(size[1])
+    return None
+
+
+def _float(value: Any) -> float:
+    return np.nan if value is None else float(value)
+
+
+def _stack(rows: list[tuple]) -> _Tracks:
+    """Put each obstacle's states on the [N, T] grid; derive missing speeds from positions."""
+    n, num_steps = len(rows), max(s.time_step for r in rows for s in r[2]) + 1
+    pos, yaw = np.zeros((n, num_steps, 2)), np.zeros((n, num_steps))
+    speed, valid = np.zeros((n, num_steps)), np.zeros((n, num_steps), dtype=bool)
+    derived = []
+    for i, (obs, static, states, _) in enumerate(rows):
+        t = np.array([s.time_step for s in states])
+        pos[i, t] = [np.asarray(s.position, dtype=np.float64) for s in states]
+        yaw[i, t] = [float(s.orientation) for s in states]
+        speed[i, t] = 0.0 if static else [_float(getattr(s, "velocity", None)) for s in states]
+        valid[i, t] = True
+        if static:  # it stands there for the whole log
+            pos[i], yaw[i], valid[i] = pos[i, t[0]], yaw[i, t[0]], True
+        if np.isnan(speed[i]).any():  # all of it: newer versions fill a missing first one with 0
+            speed[i] = _derived_speed(pos[i], yaw[i], valid[i])
+            derived.append(str(obs.obstacle_id))
+        # The state's point sits origin_x_shift ahead of the box centre (newer commonroad-io).
+        shift = float(getattr(obs.obstacle_shape, "origin_x_shift", 0.0) or 0.0)
+        pos[i] -= shift * np.stack([np.cos(yaw[i]), np.sin(yaw[i])], -1)
+    # A corrupt position (a jump no road user makes) costs its track's steps, not the file.
+    valid, repaired = drop_impossible_jumps(pos, valid, DEFAULT_DT)
+    ids = [str(r[0].obstacle_id) for r in rows]
+    return _Tracks(
+        ids=ids,
+        # Static obstacles are "other": the world model drives vehicles and must not move them.
+        types=["other" if r[1] else AGENT_TYPE.get(_kind(r[0]), "other") for r in rows],
+        positions=np.where(valid[..., None], pos, 0.0),
+        yaws=wrap_angle(np.where(valid, yaw, 0.0)),
+        speeds=np.where(valid, speed, 0.0),
+        valid=valid,
+        extents=np.array([r[3] for r in rows], dtype=np.float64),
+        notes={
+            "derived_speed": derived,
+            "repaired_tracks": {ids[r]: k for r, k in repaired.items()},
+        },
+    )
+
+
+def _kind(obs: Any) -> str:
+    return str(getattr(obs.obstacle_type, "value", obs.obstacle_type))
+
+
+def _derived_speed(pos: np.ndarray, yaw: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``[T]`` m/s from ``[T, 2]`` m positions: the mean of the backward and forward
+    differences that exist (both ends valid), signed by the heading; 0 with neither."""
+    ok = valid[1:] & valid[:-1]
+    diff = np.where(ok[:, None], np.diff(pos, axis=0) / DEFAULT_DT, 0.0)  # [T-1, 2]
+    pad = np.zeros((1, 2))
+    vel = np.concatenate([pad, diff]) + np.concatenate([diff, pad])
+    vel /= np.maximum(np.concatenate([[0], ok]) + np.concatenate([ok, [0]]), 1)[:, None]
+    sign = np.where(vel[:, 0] * np.cos(yaw) + vel[:, 1] * np.sin(yaw) < 0, -1.0, 1.0)
+    return sign * np.linalg.norm(vel, axis=1)
+
+
+# ---------------------------------------------------------------------- egos
+def _ego_problem(tracks: _Tracks, row: int, ci: int) -> str | None:
+    """Why ``row`` is no ego choice at "now" step ``ci``, or None if it is one."""
+    ok, start = tracks.valid[row], max(0, ci - MIN_HISTORY_STEPS)
+    if tracks.types[row] != "vehicle":
+        return f"its type is {tracks.types[row]!r}, not 'vehicle'"
+    if not ok[start : ci + 2].all():
+        return f"it is not present at every step from {start} to {ci + 1}"
+    if np.abs(tracks.speeds[row][ok]).mean() <= MIN_EGO_SPEED:
+        return f"its mean speed is not above {MIN_EGO_SPEED:g} m/s"
+    pos, yaw, ext = tracks.positions, tracks.yaws, tracks.extents
+    hit = boxes_overlap(pos[row][None], yaw[row][None], ext[row], pos, yaw, ext[:, None])
+    hit &= tracks.valid & ok[None]
+    hit[row] = False
+    if hit.any():
+        other, t = np.argwhere(hit)[0]
+        return f"its box overlaps obstacle {tracks.ids[other]}'s at step {t}"
+    return None
+
+
+def _ego_rows(tracks: _Tracks, ci: int) -> list[int]:
+    """Rows of the ego choices: most valid steps first, then by id (the row order)."""
+    rows = [r for r in range(len(tracks.ids)) if _ego_problem(tracks, r, ci) is None]
+    return sorted(rows, key=lambda r: (-int(tracks.valid[r].sum()), r))
+
+
+# ---------------------------------------------------------------------- scenes
+def _traffic_hash(tracks: _Tracks) -> str:
+    """Hash of the logged traffic: ids, types, validity and positions rounded to 1 cm."""
+    text = "|".join(f"{i}:{t}" for i, t in zip(tracks.ids, tracks.types, strict=True))
+    h = hashlib.sha256(text.encode())
+    h.update(np.packbits(tracks.valid).tobytes())
+    h.update(np.rint(tracks.positions[tracks.valid] / HASH_RESOLUTION).astype(np.int64).tobytes())
+    return h.hexdigest()[:16]
+
+
+def _scenes(
+    scenario: Any,
+    tracks: _Tracks,
+    source: str,
+    current_index: int,
+    notes: list[str],
+    all_egos: bool = False,
+    ego: int | str | None = None,
+) -> list[Scene]:
+    """The scenes of one file: with ``ego`` that obstacle's, else the default or all choices."""
+    ci = _effective_index(tracks.valid.shape[1], current_index, source)
+    rows = _ego_rows(tracks, ci)
+    if ego is not None:
+        if str(ego) not in tracks.ids:
+            raise CommonRoadError(f"{source}: no usable obstacle with id {str(ego)!r}")
+        chosen = [tracks.ids.index(str(ego))]
+        if (problem := _ego_problem(tracks, chosen[0], ci)) is not None:
+            raise CommonRoadError(f"{source}: obstacle {ego} cannot be the ego: {problem}")
+    elif not rows:
+        raise CommonRoadError(f"{source}: no vehicle qualifies as ego ({_EGO_RULE})")
+    else:
+        chosen = rows if all_egos else rows[:1]
+    with _file_fault(source, "lanelet"):  # e.g. a lanelet of zero width
+        road, facts = road_from_lanelets(scenario.lanelet_network.lanelets, source)
+    sid = scenario.scenario_id
+    metadata = {
+        "dataset": "commonroad",
+        "source_file": source,
+        "benchmark_id": str(sid),
+        "location": "_".join(
+            str(x) for x in (getattr(sid, "country_id", ""), getattr(sid, "map_name", "")) if x
+        ),
+        "tags": sorted(
+            str(getattr(t, "value", t)) for t in (getattr(scenario, "tags", None) or ())
+        ),
+        "ego_choices": len(rows),
+        "num_tracks": {k: tracks.types.count(k) for k in AGENT_TYPES},
+        "history_steps": ci + 1,
+        "future_steps": tracks.valid.shape[1] - ci - 1,
+        "duplicate_of": None,
+        "traffic_hash": _traffic_hash(tracks),
+        "reader_notes": notes,
+        **facts,
+        **tracks.notes,
+    }
+    return [_assemble(tracks, road, r, ci, metadata) for r in chosen]
+
+
+def _assemble(tracks: _Tracks, road: RoadMap, ego_row: int, ci: int, metadata: dict) -> Scene:
+    order = [ego_row, *(r for r in range(len(tracks.ids)) if r != ego_row)]
+    ego_id = tracks.ids[ego_row]
+    try:
+        return Scene(
+            positions=tracks.positions[order],
+            yaws=tracks.yaws[order],
+            speeds=tracks.speeds[order],
+            extents=tracks.extents[order],
+            valid=tracks.valid[order],
+            agent_types=np.array([tracks.types[r] for r in order]),
+            agent_ids=np.array([tracks.ids[r] for r in order]),
+            ego_index=0,
+            road=road,
+            dt=DEFAULT_DT,
+            scenario_id=f"{metadata['benchmark_id']}/ego={ego_id}",
+            current_index=ci,
+            metadata={**metadata, "ego": ego_id},
+        )
+    except SceneError as exc:
+        raise CommonRoadError(f"{metadata['source_file']}: {exc}") from exc
