@@ -54,37 +54,32 @@ HORIZON_STEPS = 100  # [steps] the selection looks this far into the factual fut
 
 
 def load_source(kind: str, path: str) -> tuple[list[Scene], list[float], dict]:
-    """Every scene of a source, its load times [s], and the files skipped as too short."""
-    skipped: Counter = Counter()
-    scenes, times = [], []
+    """Every scene of a source, the seconds each took to load, and what was skipped."""
+    skipped: dict = {}
     if kind == "scenarionet":
         from counterscene_env.scene.datagen import iter_scenes
 
         def short(name: str) -> None:
-            skipped["too_short"] += 1
+            skipped[name] = "too short"
 
-        it = iter_scenes(path, on_short=short)
-        while True:
-            start = time.perf_counter()
-            try:
-                scene, _ = next(it)
-            except StopIteration:
-                break
-            scenes.append(scene)
-            times.append(time.perf_counter() - start)
+        it = (scene for scene, _ in iter_scenes(path, on_short=short))
     else:
         from counterscene_env.scene.commonroad import iter_commonroad
 
-        it = iter_commonroad(path)
-        while True:
-            start = time.perf_counter()
-            try:
-                scene = next(it)
-            except StopIteration:
-                break
-            scenes.append(scene)
-            times.append(time.perf_counter() - start)
-    return scenes, times, dict(skipped)
+        report: dict = {}
+        it = iter_commonroad(path, report=report)
+    scenes, times = [], []
+    start = time.perf_counter()
+    for scene in it:  # the time to produce each scene, parsing included
+        scenes.append(scene)
+        times.append(time.perf_counter() - start)
+        start = time.perf_counter()
+    if kind == "commonroad":
+        skipped = {
+            **report["skipped"],
+            **{f: f"duplicate of {first}" for f, first in report["duplicates"].items()},
+        }
+    return scenes, times, skipped
 
 
 def factual_fit(scene: Scene) -> dict:

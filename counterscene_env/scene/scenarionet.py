@@ -9,13 +9,10 @@ unpickled by ``scene/safe_pickle.py`` (nothing in it can run code); its map beco
 Time base
 ---------
 The step is read from ``metadata.ts`` (the timestamps of the frames) where it has one entry per
-frame, else from ``metadata.sample_rate`` (seconds per frame). A source step within
-:data:`STEP_TOLERANCE` (1 %) of 0.1 s or of an integer fraction of it (0.05 s, ...) is
-accepted: ScenarioNet's Waymo converter writes float32 timestamps whose steps are 0.09998 to
-0.10006 s. The tracks are then put on the exact 0.1 s grid from the first frame: by plain
-subsampling where the frames already lie on it (nuScenes, 20 Hz logs), else by linear
-interpolation between the two frames around each grid time (headings along the shorter arc);
-a grid step is valid where the frames it reads are.
+frame, else from ``metadata.sample_rate`` (seconds per frame), and the tracks are put on the
+exact 0.1 s grid by ``scene/timebase.py`` (a step within 1 % of 0.1 s or an integer fraction
+of it: ScenarioNet's Waymo converter writes float32 timestamps with steps of 0.09998 to
+0.10006 s).
 
 Tracks
 ------
@@ -61,6 +58,7 @@ from counterscene_env.scene.core import (
 )
 from counterscene_env.scene.safe_pickle import ALLOWED_GLOBALS, UnsafePickleError, safe_load
 from counterscene_env.scene.scenarionet_map import MapError, road_from_features
+from counterscene_env.scene.timebase import TimeGrid, time_grid
 
 __all__ = [
     "ALLOWED_GLOBALS",
@@ -86,12 +84,6 @@ DEFAULT_BOX = {
     "cyclist": (1.8, 0.7),
     "other": (0.5, 0.5),
 }
-#: Relative tolerance on the source step against 0.1 s / k (float32 timestamps, module doc).
-STEP_TOLERANCE = 0.01
-#: A grid time this close to a frame (in grid steps: 5 ms) may read that frame alone where its
-#: neighbour is invalid, and a last frame this close to a grid time reaches it: float32
-#: timestamps drift from the grid by up to 1 ms over a 9 s Waymo log.
-_SNAP = 0.05
 _STATE_FIELDS = ("position", "heading", "velocity", "valid", "length", "width")
 
 
@@ -180,7 +172,9 @@ def scene_from_description(
     meta = sd["metadata"]
     tracks = _read_tracks(sd["tracks"], meta, source)
     grid = _time_grid(meta, tracks.num_source_steps, source)
-    positions, yaws, speeds, valid = grid.apply(tracks)
+    positions, yaws, speeds, valid = grid.apply(
+        tracks.position, tracks.heading, tracks.velocity, tracks.valid
+    )
     num_steps = positions.shape[1]
     if current_index is None:
         current_index = default_current_index(num_steps, source)
@@ -397,60 +391,15 @@ def _box(lengths: np.ndarray, widths: np.ndarray, agent_type: str) -> tuple[np.n
 
 
 # ---------------------------------------------------------------------- time base
-@dataclass(frozen=True)
-class _Grid:
-    """Where each 0.1 s grid step reads the source: frame ``left`` and ``left + 1`` with
-    weight ``w`` on the second (``[T]`` each)."""
-
-    left: np.ndarray
-    w: np.ndarray
-    source_dt: float
-    interpolated: bool
-
-    def apply(self, tr: _Tracks) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """positions [N, T, 2] m, yaws [N, T] rad, speeds [N, T] m/s, valid [N, T] on the grid."""
-        i, w = self.left, self.w
-        j = np.minimum(i + 1, tr.num_source_steps - 1)
-        vi, vj = tr.valid[:, i], tr.valid[:, j]
-        # A frame whose weight is within _SNAP of 0 is not needed: a track's first or last
-        # frame stays valid when the grid time falls a float32 drift beside it.
-        valid = (vi | (w >= 1 - _SNAP)) & (vj | (w <= _SNAP))
-        wv = np.where(vi & vj, w, np.where(vi, 0.0, 1.0))
-        pos = (1 - wv[..., None]) * tr.position[:, i] + wv[..., None] * tr.position[:, j]
-        vel = (1 - wv[..., None]) * tr.velocity[:, i] + wv[..., None] * tr.velocity[:, j]
-        turn = wrap_angle(tr.heading[:, j] - tr.heading[:, i])
-        yaw = wrap_angle(tr.heading[:, i] + wv * turn)
-        # Signed speed (the scene contract): the velocity's magnitude, negative where it points
-        # backwards relative to the heading (a reversing car). The magnitude, not the
-        # projection, so that annotation slip between heading and velocity does not shrink it.
-        along = vel[..., 0] * np.cos(yaw) + vel[..., 1] * np.sin(yaw)
-        speed = np.where(along < 0, -1.0, 1.0) * np.linalg.norm(vel, axis=-1)
-        return pos, yaw, speed, valid
-
-
-def _time_grid(meta: Mapping[str, Any], num_frames: int, source: str) -> _Grid:
-    """The exact 0.1 s grid over the log's frames (module docstring, "Time base")."""
+def _time_grid(meta: Mapping[str, Any], num_frames: int, source: str) -> TimeGrid:
+    """The exact 0.1 s grid over the log's frames (``scene/timebase.py``)."""
     if num_frames < 2:
         raise ScenarioNetError(f"{source}: the log has {num_frames} frame; a scene needs two")
     times, field_name = _frame_times(meta, num_frames, source)
-    steps = np.diff(times)
-    if (steps <= 0).any():
-        raise ScenarioNetError(f"{source}: {field_name} is not strictly increasing")
-    step = float(np.median(steps))
-    k = max(1, round(DEFAULT_DT / step))
-    if abs(step * k - DEFAULT_DT) > STEP_TOLERANCE * DEFAULT_DT:
-        raise ScenarioNetError(
-            f"{source}: {field_name} gives a step of {step:.6g} s; need {DEFAULT_DT} s or an "
-            f"integer fraction of it (within {STEP_TOLERANCE:.0%})"
-        )
-    rel = (times - times[0]) / DEFAULT_DT  # frame times in grid steps
-    grid = np.arange(int(np.floor(rel[-1] + _SNAP)) + 1, dtype=np.float64)
-    left = np.clip(np.searchsorted(rel, grid, side="right") - 1, 0, max(num_frames - 2, 0))
-    span = rel[np.minimum(left + 1, num_frames - 1)] - rel[left]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w = np.clip(np.where(span > 0, (grid - rel[left]) / span, 0.0), 0.0, 1.0)
-    on_frames = bool(np.all((w <= 1e-9) | (w >= 1 - 1e-9)))
-    return _Grid(left, w, round(step, 9), not on_frames)
+    try:
+        return time_grid(times, f"{source}: {field_name}")
+    except SceneError as exc:
+        raise ScenarioNetError(str(exc)) from None
 
 
 def _frame_times(meta: Mapping[str, Any], num_frames: int, source: str) -> tuple[np.ndarray, str]:
