@@ -38,14 +38,11 @@ import torch
 from torch.utils.data import default_collate
 
 from counterscene_env.geometry import from_frame
+from counterscene_env.metrics.realism import PARKED_SPEED  # the one "parked" speed, m/s
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.road import RoadMap
 from counterscene_env.world_model.dataset import SceneWindowDataset
 from counterscene_env.world_model.model import WorldModel
-
-#: Speed "now" below which an agent counts as parked, m/s (GPS and tracking jitter of a
-#: standing car in real logs stays below this).
-PARKED_SPEED = 0.5
 
 #: Speed "now" from which an agent counts as moving, m/s; between the two it is "slow"
 #: (creeping in a queue, pulling out, stopping).
