@@ -34,30 +34,6 @@ DEFAULT_HISTORY_STEPS = 31  # 3 s of history including the current frame (paper:
 MIN_HISTORY_STEPS = 10
 
 
-def default_current_index(num_steps: int, where: str = "the log") -> int:
-    """The "now" step of an imported log of ``num_steps`` steps: 3 s of history where the log
-    holds it and one step more; for a shorter log the last step but one, if that leaves
-    :data:`MIN_HISTORY_STEPS` of history.
-
-    Raises:
-        SceneTooShort: the log is too short for any episode (the message names ``where``).
-    """
-    now = min(DEFAULT_HISTORY_STEPS - 1, num_steps - 2)
-    if now < MIN_HISTORY_STEPS:
-        raise SceneTooShort(
-            f"{where} has {num_steps} steps: too short for {MIN_HISTORY_STEPS} steps of "
-            "history and one of future"
-        )
-    return now
-
-
-def playable(scene: Scene) -> bool:
-    """Whether an episode can start at the scene's "now": a future step, the ego valid now."""
-    return scene.current_index < scene.num_steps - 1 and bool(
-        scene.valid[scene.ego_index, scene.current_index]
-    )
-
-
 class SceneError(ValueError):
     """A scene (in memory or on disk) breaks the contract; the message names the field."""
 
@@ -337,3 +313,27 @@ def drop_impossible_jumps(
         valid[row] = keep
         repaired[int(row)] = int(before[row] - keep.sum())
     return valid, repaired
+
+
+def default_current_index(num_steps: int, where: str = "the log") -> int:
+    """The "now" step of an imported log of ``num_steps`` steps: 3 s of history where the log
+    holds it and one step more; for a shorter log the last step but one, if that leaves
+    :data:`MIN_HISTORY_STEPS` of history.
+
+    Raises:
+        SceneTooShort: the log is too short for any episode (the message names ``where``).
+    """
+    now = min(DEFAULT_HISTORY_STEPS - 1, num_steps - 2)
+    if now < MIN_HISTORY_STEPS:
+        raise SceneTooShort(
+            f"{where} has {num_steps} steps: too short for {MIN_HISTORY_STEPS} steps of "
+            "history and one of future"
+        )
+    return now
+
+
+def playable(scene: Scene) -> bool:
+    """Whether an episode can start at the scene's "now": a future step, the ego valid now."""
+    return scene.current_index < scene.num_steps - 1 and bool(
+        scene.valid[scene.ego_index, scene.current_index]
+    )
