@@ -64,33 +64,16 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     )
 
     start = time.perf_counter()
+    blocks = {"shard_size": args.shard_size, "workers": args.workers, "progress": not args.quiet}
     if args.from_commonroad:
         manifest = convert_commonroad(
-            args.from_commonroad,
-            args.out,
-            all_egos=args.all_egos,
-            shard_size=args.shard_size,
-            workers=args.workers,
-            progress=not args.quiet,
+            args.from_commonroad, args.out, all_egos=args.all_egos, **blocks
         )
     elif args.from_scenarionet:
-        manifest = convert_scenarionet(
-            args.from_scenarionet,
-            args.out,
-            shard_size=args.shard_size,
-            workers=args.workers,
-            progress=not args.quiet,
-        )
+        manifest = convert_scenarionet(args.from_scenarionet, args.out, **blocks)
     else:
         manifest = generate_dataset(
-            args.out,
-            args.scenario,
-            args.scenes,
-            args.seed,
-            shard_size=args.shard_size,
-            workers=args.workers,
-            duration=args.duration,
-            progress=not args.quiet,
+            args.out, args.scenario, args.scenes, args.seed, duration=args.duration, **blocks
         )
     print(
         f"{manifest['scenes']} scenes in {len(manifest['shards'])} shards at {args.out} "
