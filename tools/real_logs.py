@@ -57,7 +57,7 @@ def load_source(kind: str, path: str) -> tuple[list[Scene], list[float], dict]:
     """Every scene of a source, the seconds each took to load, and what was skipped."""
     skipped: dict = {}
     if kind == "scenarionet":
-        from counterscene_env.scene.datagen import iter_scenes
+        from counterscene_env.scene.reading import iter_scenes
 
         def short(name: str) -> None:
             skipped[name] = "too short"

@@ -107,7 +107,7 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     import numpy as np
 
     from counterscene_env.metrics import evaluate_scene
-    from counterscene_env.scene.datagen import iter_scenes
+    from counterscene_env.scene.reading import iter_scenes
 
     rows = []
     for scene, load_time in iter_scenes(Path(args.path)):

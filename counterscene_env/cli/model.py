@@ -161,7 +161,7 @@ def _evaluation_scenes(args: argparse.Namespace) -> list:
             seed = scenes[-1].metadata["seed"] + 1
         return scenes
     if args.data:  # the first --scenes of each dataset
-        from counterscene_env.scene.datagen import iter_scenes
+        from counterscene_env.scene.reading import iter_scenes
 
         n = args.scenes or DEFAULT_EVAL_SCENES
         return [s for d in args.data for s, _ in itertools.islice(iter_scenes(Path(d)), n)]

@@ -62,7 +62,7 @@ def stored_scenes(spec: str) -> Iterator[Scene]:
 
         scenes: Iterator[Scene] = iter_commonroad(spec_path(spec), report=report)
     else:
-        from counterscene_env.scene.datagen import iter_scenes
+        from counterscene_env.scene.reading import iter_scenes
 
         def count(_name: str) -> None:
             SKIPPED[spec] += 1

@@ -1,0 +1,66 @@
+"""Scenes from a path on disk: a dataset directory, a shard file, a ScenarioNet ``.pkl`` file
+or a directory of them. One job: the reading side of ``scene/datagen.py`` (which writes
+dataset directories) and of the ScenarioNet importer, for every command that takes a path.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+from counterscene_env.scene.core import Scene, SceneTooShort
+from counterscene_env.scene.datagen import MANIFEST, read_manifest, shard_paths
+from counterscene_env.scene.shards import load_scenes
+
+__all__ = ["iter_scenes"]
+
+
+def iter_scenes(
+    path: str | os.PathLike, on_short: Callable[[str], None] | None = None
+) -> Iterator[tuple[Scene, float]]:
+    """Yield (scene, seconds it took to produce) from a dataset directory, a shard file, a
+    ScenarioNet ``.pkl`` file, or a directory of them (sorted, recursively).
+
+    ``on_short(file name)`` is called for a ``.pkl`` log too short for any episode, which is
+    then skipped; without it such a log raises :class:`SceneTooShort`.
+    """
+    path = Path(path)
+    if path.is_dir() and not (path / MANIFEST).is_file():
+        files = sorted(path.rglob("*.pkl"))
+        if not files:
+            raise FileNotFoundError(f"{path}: no dataset manifest and no .pkl files")
+    elif path.suffix == ".pkl":
+        files = [path]
+    else:
+        yield from _iter_stored(path)
+        return
+    from counterscene_env.scene.scenarionet import load_scenarionet
+
+    for f in files:
+        start = time.perf_counter()
+        try:
+            scene = load_scenarionet(f)
+        except SceneTooShort:
+            if on_short is None:
+                raise
+            on_short(f.name)
+            continue
+        yield scene, time.perf_counter() - start
+
+
+def _iter_stored(path: Path) -> Iterator[tuple[Scene, float]]:
+    """(scene, generation time) from a dataset directory or a shard file."""
+
+    if path.is_dir():
+        read_manifest(path)
+        for shard in shard_paths(path):
+            for scene in load_scenes(shard):
+                yield scene, float(scene.metadata.get("generation_time_s", math.nan))
+    elif path.is_file():
+        for scene in load_scenes(path):
+            yield scene, float(scene.metadata.get("generation_time_s", math.nan))
+    else:
+        raise FileNotFoundError(f"{path}: no such file or directory")
