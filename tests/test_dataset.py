@@ -127,3 +127,18 @@ def test_loads_from_shards_and_dataset_dirs(tmp_path, generated):
     assert len(both) == 15 and len(both.scenes) == 3
     with pytest.raises(Exception, match="no such shard"):
         SceneWindowDataset(tmp_path / "missing.npz")
+
+
+def test_short_logs_give_windows_with_masked_futures_when_asked():
+    """A 25-step log has no window with a whole 20-step future after 11 steps of history;
+    with ``min_future_steps`` the ends of such logs become windows, the missing frames
+    invalid (masked out of the loss)."""
+    short = _northbound_scene().time_slice(0, 25)
+    assert len(SceneWindowDataset([short], CFG)) == 0
+    ds = SceneWindowDataset([short], CFG, min_future_steps=10)
+    starts = [t for _, t in ds.index]
+    assert starts == [10]  # t0 = 10 leaves 14 future steps; 15 would leave only 9
+    item = ds[0]
+    assert item["future_valid"][0, :14].all() and not item["future_valid"][0, 14:].any()
+    with pytest.raises(ValueError, match="min_future_steps"):
+        SceneWindowDataset([short], CFG, min_future_steps=0)

@@ -64,6 +64,13 @@ def add_train(sub) -> None:
         help="weight of the loss term on predicted points off the lanes the log follows "
         "(default 0: left out; the shipped model used 1.0)",
     )
+    tr.add_argument(
+        "--min-future",
+        type=int,
+        metavar="STEPS",
+        help="future steps a window needs inside its log (default: the whole horizon); fewer "
+        "trains on the ends of short real logs, the missing steps masked",
+    )
     add_quiet_flag(tr)
     tr.set_defaults(func=_cmd_train)
 
@@ -93,6 +100,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         device=args.device,
         init=args.init,
         off_lane_weight=args.off_lane_weight,
+        min_future_steps=args.min_future,
     )
     record = train(cfg, progress=not args.quiet)
     print(json.dumps(json_safe(record)))

@@ -2,8 +2,12 @@
 
 Items are :func:`counterscene_env.world_model.window.make_window` windows (the key table is in
 ``world_model/window.py``) as tensors, plus ``scene_index``: the row of the scene in the
-dataset. Windows are all ``t0`` in ``[history_steps - 1, T - future_steps - 1]`` (step
-``stride``) at which the ego is valid.
+dataset. Windows are all ``t0`` in ``[history_steps - 1, T - min_future_steps - 1]`` (step
+``stride``) at which the ego is valid. ``min_future_steps`` defaults to the window's
+``future_steps`` (every window has its whole future); a smaller value admits windows near the
+end of short real logs, whose missing future frames are invalid and masked out of the loss
+(``future_valid``). NGSIM recordings run 7 s at the median: with full 5.2 s futures only about
+15 of 84 give a window at all.
 """
 
 from __future__ import annotations
@@ -28,17 +32,25 @@ class SceneWindowDataset(Dataset):
     Args:
         sources: dataset directories (with ``manifest.json``), shard files, or ``Scene`` objects.
         config: window sizes.
+        min_future_steps: future frames a window needs inside the log (None: all
+            ``future_steps``; at least 1).
 
-    Windows are all ``t0`` in ``[history_steps - 1, T - future_steps - 1]`` (step ``stride``)
-    at which the ego is valid.
+    Raises:
+        ValueError: ``min_future_steps`` outside ``[1, future_steps]``.
     """
 
     def __init__(
         self,
         sources: Sequence[str | os.PathLike | Scene] | str | os.PathLike,
         config: WindowConfig | None = None,
+        min_future_steps: int | None = None,
     ) -> None:
         self.config = config or WindowConfig()
+        need = self.config.future_steps if min_future_steps is None else int(min_future_steps)
+        if not 1 <= need <= self.config.future_steps:
+            raise ValueError(
+                f"min_future_steps must be in [1, {self.config.future_steps}], got {need}"
+            )
         self.scenes: list[Scene] = load_sources(sources)
         c = self.config
         self._segments = [
@@ -46,7 +58,7 @@ class SceneWindowDataset(Dataset):
         ]
         self.index: list[tuple[int, int]] = []
         for i, s in enumerate(self.scenes):
-            first, last = c.history_steps - 1, s.num_steps - c.future_steps - 1
+            first, last = c.history_steps - 1, s.num_steps - need - 1
             self.index += [
                 (i, t) for t in range(first, last + 1, c.stride) if s.valid[s.ego_index, t]
             ]

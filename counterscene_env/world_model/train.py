@@ -66,6 +66,8 @@ class TrainConfig:
             normalisation start the run (fine-tuning); None: a fresh model.
         off_lane_weight: weight of the loss's off-lane term (``WorldModel.loss``); 0 leaves
             it out.
+        min_future_steps: future frames a window needs inside its log (None: the model's whole
+            horizon); fewer admits the ends of short real logs, their missing frames masked.
     """
 
     data: tuple[str, ...]
@@ -87,6 +89,7 @@ class TrainConfig:
     device: str = "cpu"
     init: str | None = None
     off_lane_weight: float = 0.0
+    min_future_steps: int | None = None
 
 
 # ModelConfig fields that size no tensor, so ``--init`` may change them: which lanes the window
@@ -173,7 +176,11 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     probe = WorldModel(model_cfg)
     groups = [load_sources(d) for d in cfg.data]
     sizes = [len(g) for g in groups]
-    ds = SceneWindowDataset([s for g in groups for s in g], probe.window_config(cfg.window_stride))
+    ds = SceneWindowDataset(
+        [s for g in groups for s in g],
+        probe.window_config(cfg.window_stride),
+        min_future_steps=cfg.min_future_steps,
+    )
     train_rows, val_rows = _split(ds, sizes, cfg.val_fraction)
     if not train_rows:
         raise ValueError(f"no training windows in {list(cfg.data)}")
