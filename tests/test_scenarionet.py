@@ -565,15 +565,18 @@ def test_beyond_the_map_crop_is_not_off_road(tmp_path):
 
 
 def test_short_logs_start_later_or_are_skipped_and_counted(tmp_path):
-    """A log under 3 s + 1 step starts at its last step but one (if 1 s of history remains);
-    a shorter one is too short for any episode: stored specs skip it and count it."""
+    """A log under 4 s starts early enough for 1 s of future, else at its last step but one
+    (if 1 s of history remains); a shorter one is too short for any episode: stored specs
+    skip it and count it."""
     from counterscene_env.scene.sources import SKIPPED, stored_scenes
 
+    assert load_scenarionet(_write(tmp_path, _scenario(n=35), "mid.pkl")).current_index == 24
     n = 20
     scene = load_scenarionet(_write(tmp_path, _scenario(n=n), "short.pkl"))
     assert scene.current_index == n - 2
+    (tmp_path / "mid.pkl").unlink()
     _write(tmp_path, _scenario(n=8), "tiny.pkl")
-    with pytest.raises(SceneError, match=r"tiny\.pkl has 8 steps: too short"):
+    with pytest.raises(SceneError, match=r"tiny\.pkl: recording too short: 8 steps"):
         load_scenarionet(tmp_path / "tiny.pkl")
     spec = f"scenarionet:{tmp_path}"
     assert [s.metadata["source_file"] for s in stored_scenes(spec)] == ["short.pkl"]

@@ -27,10 +27,11 @@ agent's at any step where both are valid (15 of the 84 usable NGSIM recordings h
 logged boxes; a factual log must not start from an ego collision). Best first: most valid
 steps, then by id.
 
-Short logs: "now" must leave one future step. A log shorter than ``current_index + 2`` steps
-gets ``current_index = num_steps - 2`` if that keeps :data:`MIN_HISTORY_STEPS` (1 s) of history,
-else :class:`CommonRoadError` ("too short"). ``metadata["history_steps"]`` counts the frames up
-to and including "now" (``current_index + 1``), ``metadata["future_steps"]`` those after it.
+Short logs: "now" moves earlier where the log does not hold 1 s after ``current_index``
+(``core.default_current_index``: 1 s of future if 1 s of history remains, else one future
+step); a log without 1 s of history before a future step raises :class:`CommonRoadTooShort`.
+``metadata["history_steps"]`` counts the frames up to and including "now"
+(``current_index + 1``), ``metadata["future_steps"]`` those after it.
 
 Road: the lanelets, by ``scene/commonroad_map.py``.
 
@@ -63,6 +64,7 @@ from counterscene_env.scene.core import (
     Scene,
     SceneError,
     SceneTooShort,
+    default_current_index,
     drop_impossible_jumps,
 )
 from counterscene_env.scene.road import RoadMap
@@ -241,17 +243,13 @@ def _read_file(path: Path) -> tuple[Any, list[str]]:
 
 
 def _effective_index(num_steps: int, current_index: int, source: str) -> int:
-    """``current_index``, or ``num_steps - 2`` for a short log (module docstring)."""
+    """``current_index``, moved earlier in a short log (``core.default_current_index``)."""
     if current_index < 0:
         raise CommonRoadError(f"{source}: current_index must be >= 0, got {current_index}")
-    if current_index + 2 <= num_steps:
-        return current_index
-    if num_steps - 2 >= MIN_HISTORY_STEPS:
-        return num_steps - 2
-    raise CommonRoadTooShort(
-        f"{source}: recording too short: {num_steps} steps ({(num_steps - 1) * DEFAULT_DT:.1f} s)"
-        f" leave no {MIN_HISTORY_STEPS} steps of history before a future step"
-    )
+    try:
+        return default_current_index(num_steps, source, preferred=current_index)
+    except SceneTooShort as exc:
+        raise CommonRoadTooShort(str(exc)) from None
 
 
 @contextlib.contextmanager

@@ -29,9 +29,10 @@ DEFAULT_DT = 0.1  # [s]
 #: "move" is a corrupt position (``Scene`` refuses it; importers repair the track).
 MAX_SPEED = 100.0
 DEFAULT_HISTORY_STEPS = 31  # 3 s of history including the current frame (paper: 31)
-#: The least history a real log may start an episode with, steps before "now" (1 s): shorter
-#: logs keep their "now" at the last step but one, so that one future step remains.
+#: The least history a real log may start an episode with, steps before "now" (1 s).
 MIN_HISTORY_STEPS = 10
+#: The future a short log's "now" keeps where the log allows it, steps (1 s).
+MIN_FUTURE_STEPS = 10
 
 
 class SceneError(ValueError):
@@ -315,21 +316,28 @@ def drop_impossible_jumps(
     return valid, repaired
 
 
-def default_current_index(num_steps: int, where: str = "the log") -> int:
-    """The "now" step of an imported log of ``num_steps`` steps: 3 s of history where the log
-    holds it and one step more; for a shorter log the last step but one, if that leaves
-    :data:`MIN_HISTORY_STEPS` of history.
+def default_current_index(
+    num_steps: int, where: str = "the log", preferred: int = DEFAULT_HISTORY_STEPS - 1
+) -> int:
+    """The "now" step of an imported log of ``num_steps`` steps.
+
+    ``preferred`` (3 s of history) where the log holds :data:`MIN_FUTURE_STEPS` (1 s) after
+    it; else the latest step that leaves 1 s of future, if that keeps
+    :data:`MIN_HISTORY_STEPS` (1 s) of history; else the last step but one, if that does. An
+    episode on a short log so gets a second of future wherever the log allows it.
 
     Raises:
         SceneTooShort: the log is too short for any episode (the message names ``where``).
     """
-    now = min(DEFAULT_HISTORY_STEPS - 1, num_steps - 2)
-    if now < MIN_HISTORY_STEPS:
-        raise SceneTooShort(
-            f"{where} has {num_steps} steps: too short for {MIN_HISTORY_STEPS} steps of "
-            "history and one of future"
-        )
-    return now
+    if preferred + MIN_FUTURE_STEPS <= num_steps - 1:
+        return preferred
+    for now in (num_steps - 1 - MIN_FUTURE_STEPS, num_steps - 2):
+        if now >= MIN_HISTORY_STEPS:
+            return now
+    raise SceneTooShort(
+        f"{where}: recording too short: {num_steps} steps ({(num_steps - 1) * DEFAULT_DT:.1f} s)"
+        f" leave no {MIN_HISTORY_STEPS} steps of history before a future step"
+    )
 
 
 def playable(scene: Scene) -> bool:
