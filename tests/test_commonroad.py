@@ -147,7 +147,7 @@ def test_default_ego_rows_types_and_extents(scene, toy):
     np.testing.assert_allclose(scene.speeds[0][scene.valid[0]], 10.0)
     np.testing.assert_allclose(scene.speeds[4], 1.2, atol=1e-6)  # derived from positions
     meta = scene.metadata
-    assert meta["derived_speed"] == ["14"]
+    assert meta["repairs"] == {"14": ["speed derived from positions (no velocity)"]}
     assert meta["dataset"] == "commonroad" and meta["ego"] == "10" and meta["ego_choices"] == 2
     assert meta["num_tracks"] == {"vehicle": 4, "pedestrian": 1, "cyclist": 0, "other": 1}
     assert (meta["history_steps"], meta["future_steps"]) == (31, 14)

@@ -13,11 +13,12 @@ initial state); steps without a state are invalid. ``velocity`` is the signed sp
 heading (m/s). Where any state of a track lacks it, the track's speeds are derived from its
 positions (mean of the backward and forward differences that exist, signed by the heading; newer
 commonroad-io silently fills a missing initial velocity with 0) and its id is listed in
-``metadata["derived_speed"]``. Extents are a rectangle's (length, width), else the bounding box
+``metadata["repairs"]``. Extents are a rectangle's (length, width), else the bounding box
 of a circle or polygon; a rectangle's ``origin_x_shift`` (newer commonroad-io) is undone so that
 positions are box centres. Obstacles with a set-based prediction (occupancy sets, not a log) or
 states without a point position or orientation are dropped, with the reason, into
-``metadata["dropped"]``. Rows: the ego, then by obstacle id.
+``metadata["dropped_tracks"]`` (the same two keys as the ScenarioNet importer's, which
+``counterscene inspect`` prints). Rows: the ego, then by obstacle id.
 
 Ego: the planning problem's ego is a planning task, not a logged car (in the NGSIM files its
 initial state matches no obstacle), so it is ignored. An ego choice is a dynamic vehicle whose
@@ -105,7 +106,7 @@ class _Tracks:
     speeds: np.ndarray  # [N, T] m/s
     valid: np.ndarray  # [N, T] bool
     extents: np.ndarray  # [N, 2] m, (length, width)
-    notes: dict  # dropped, derived_speed, repaired_tracks (for the metadata)
+    notes: dict  # repairs and dropped_tracks (for the metadata)
 
 
 # ---------------------------------------------------------------------- public API
@@ -286,7 +287,7 @@ def _read_tracks(scenario: Any, source: str) -> _Tracks:
             some = next(iter(dropped.items()), "none in the file")
             raise CommonRoadError(f"{source}: no usable obstacle ({len(dropped)} dropped: {some})")
         tracks = _stack(rows)
-    tracks.notes["dropped"] = dropped
+    tracks.notes["dropped_tracks"] = dropped
     return tracks
 
 
@@ -358,11 +359,16 @@ def _stack(rows: list[tuple]) -> _Tracks:
         speeds=np.where(valid, speed, 0.0),
         valid=valid,
         extents=np.array([r[3] for r in rows], dtype=np.float64),
-        notes={
-            "derived_speed": derived,
-            "repaired_tracks": {ids[r]: k for r, k in repaired.items()},
-        },
+        notes={"repairs": _repairs(derived, {ids[r]: k for r, k in repaired.items()})},
     )
+
+
+def _repairs(derived: list[str], jumped: dict[str, int]) -> dict[str, list[str]]:
+    """Track id -> what was repaired, worded as the ScenarioNet importer words it."""
+    out: dict[str, list[str]] = {k: ["speed derived from positions (no velocity)"] for k in derived}
+    for k, n in jumped.items():
+        out.setdefault(k, []).append(f"{n} steps after an impossible jump made invalid")
+    return out
 
 
 def _kind(obs: Any) -> str:
