@@ -167,12 +167,10 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         f"mean min TTC {fmt(summary['mean_min_ttc'])} s, min clearance to adversary "
         f"{fmt(summary['mean_min_clearance_adversary'])} m, fallbacks {summary['fallbacks']}"
     )
-    if summary["episodes_cut_at_log_end"] or summary["scenes_too_short"]:
-        print(
-            f"{summary['episodes_cut_at_log_end']} episodes ended with their log before "
-            f"--duration; {summary['scenes_too_short']} scenes too short for an episode "
-            "were skipped"
-        )
+    if summary["episodes_cut_at_log_end"]:
+        print(f"{summary['episodes_cut_at_log_end']} episodes ended with their log (short logs)")
+    if summary["scenes_too_short"]:
+        print(f"{summary['scenes_too_short']} logs too short for an episode were skipped")
     print(
         f"{fmt(summary['seconds_per_episode'])} s per episode, "
         f"{fmt(summary['seconds_per_replan'])} s per replan"
