@@ -29,6 +29,7 @@ LAYERS = {
     "planners": 6,
     "envs": 7,
     "stress": 8,
+    "bench": 8,  # times stress runs beside the env and highway-env
     "cli": 9,
     "": 10,  # the package root: version and registration
 }

@@ -308,3 +308,21 @@ def test_init_may_change_which_lanes_the_window_holds(dataset, tmp_path):
     # The off-lane term is logged with the other losses.
     record = json.loads(_log(fine)[-1])
     assert math.isfinite(record["off_lane"]) and record["off_lane"] >= 0
+
+
+@pytest.mark.slow
+def test_full_bench_json_has_every_figure(capsys):
+    """``counterscene bench --json``: the anchor, the env, replans, stress and RSS in one run."""
+    capsys.readouterr()
+    argv = ["bench", "--steps", "12", "--episodes", "1", "--runs", "1", "--json"]
+    assert main(argv) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["highway_env_steps_per_s"] > 0 and r["env_steps_per_s"] > 0
+    assert r["env_vs_highway_env"] == pytest.approx(
+        r["env_steps_per_s"] / r["highway_env_steps_per_s"]
+    )
+    assert r["replan_ms"]["count"] >= 1 and r["replan_ms"]["p95"] >= r["replan_ms"]["median"] > 0
+    assert r["flops_per_replan"] > 0 and 0 < r["peak_fraction"] < 1
+    assert r["stress_s_per_episode"] > 0 and r["peak_rss_mb"] > 100
+    assert main(["bench", "--steps", "0"]) == 1  # refused, named
+    assert "--steps" in capsys.readouterr().err

@@ -6,7 +6,7 @@ Subcommands import what they need when they run, so ``counterscene --help`` is i
 - ``inspect``: load scenes and report their size, timing and factual metrics.
 - ``train``: train a world model on dataset directories (resumable).
 - ``evaluate-model``: open-loop ADE/FDE/off-road of a world model vs constant velocity.
-- ``bench``: latency and FLOPs of a world model's sampling call.
+- ``bench``: every speed figure in one run (highway-env anchor, env, replans, stress, RSS).
 - ``bench-env``: steps per second of ``CounterScene-v0``.
 - ``stress``: stress-test an ego planner against guided world-model traffic (paper's table).
 """

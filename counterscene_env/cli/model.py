@@ -261,23 +261,30 @@ def add_bench(sub) -> None:
     """Register ``counterscene bench``."""
     be = sub.add_parser(
         "bench",
-        help="latency and FLOPs of one world-model sampling call",
+        help="every speed figure in one run: highway-env's anchor, the env, replans, stress, RSS",
         description=(
-            "Time one sampling call (all agents of a scene, default sampler and steps) --runs "
-            "times and report the median, FLOPs per denoiser forward (torch's flop counter) and "
-            "the fraction of this CPU's measured matmul peak."
+            "One process, one run: highway-env's intersection with IDM traffic at 10 Hz (the "
+            "anchor), CounterScene-v0 with its default config (env steps/s, replan latency, "
+            "FLOPs per replan against this CPU's measured peak), seconds per stress episode, peak "
+            "RSS, and the model's sampling call alone. With --model-only (or --preset) only the "
+            "sampling call is timed, as the earlier `bench` did."
         ),
     )
     add_model_flag(be)
-    be.add_argument("--preset", help="benchmark an untrained model of this preset instead")
-    be.add_argument("--runs", type=int, default=50, help="timed calls (default 50)")
+    be.add_argument("--preset", help="time an untrained model of this preset (model only)")
+    be.add_argument("--model-only", action="store_true", help="only the model's sampling call")
+    be.add_argument("--runs", type=int, default=50, help="timed sampling calls (default 50)")
     be.add_argument("--samples", type=int, default=1, help="samples per call (default 1)")
     be.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
+    be.add_argument("--steps", type=int, default=300, help="env steps of each env (default 300)")
+    be.add_argument("--episodes", type=int, default=4, help="stress episodes (default 4)")
     add_json_flag(be)
     be.set_defaults(func=_cmd_bench)
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
+    if not (args.model_only or args.preset):
+        return _full_bench(args)
     from counterscene_env.world_model.bench import bench_model
 
     if args.preset:
@@ -308,4 +315,48 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         f"  achieved {result['achieved_gflops']:.2f} GFLOP/s of a measured matmul peak "
         f"{result['peak_gflops']:.1f} GFLOP/s ({100 * result['peak_fraction']:.1f} %)"
     )
+    return 0
+
+
+def _full_bench(args: argparse.Namespace) -> int:
+    """``counterscene bench`` without ``--model-only``: ``counterscene_env/bench.py``."""
+    import torch
+
+    from counterscene_env.bench import run_bench
+
+    for flag in ("steps", "episodes", "runs"):
+        if getattr(args, flag) < 1:
+            raise ValueError(f"--{flag} must be >= 1, got {getattr(args, flag)}")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    r = run_bench(args.steps, args.episodes, args.runs, model_dir=args.model)
+    if args.json:
+        print(json.dumps(json_safe(r)))
+        return 0
+    print(f"torch threads {torch.get_num_threads()}; {args.steps} env steps each")
+    print(
+        f"  highway-env {r['runs']['anchor']['env']} (IDM, 10 Hz): "
+        f"{r['highway_env_steps_per_s']:.1f} steps/s"
+    )
+    print(
+        f"  CounterScene-v0 (default config): {r['env_steps_per_s']:.1f} steps/s = "
+        f"{r['env_vs_highway_env']:.2f}x highway-env; {100 * r['replan_share']:.0f} % of step "
+        "time in replans"
+    )
+    ms = r["replan_ms"]
+    print(
+        f"  replan: median {ms['median']:.0f} ms, p95 {ms['p95']:.0f} ms over {ms['count']}; "
+        f"{r['flops_per_replan'] / 1e9:.2f} GFLOP = {r['achieved_gflops']:.1f} GFLOP/s, "
+        f"{100 * r['peak_fraction']:.1f} % of the {r['peak_gflops']:.0f} GFLOP/s matmul peak"
+    )
+    print(
+        f"  stress (intersection, IDM, full guidance): {r['stress_s_per_episode']:.2f} s per "
+        f"episode over {args.episodes}"
+    )
+    m = r["model"]
+    print(
+        f"  model sampling call alone: median {1000 * m['latency_median_s']:.0f} ms "
+        f"({m['sampling_steps']} {m['sampler']} steps, {m['samples']} sample)"
+    )
+    print(f"  peak RSS {r['peak_rss_mb']:.0f} MB")
     return 0

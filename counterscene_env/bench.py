@@ -1,0 +1,178 @@
+"""The one benchmark (``counterscene bench``): every speed figure in one process and one run, so
+that ratios are honest on a noisy machine.
+
+In order, on the same machine state:
+
+1. **Anchor**: highway-env's newest ``intersection`` env with its IDM traffic, policy and
+   simulation at 10 Hz (the frequency of our scenes), random continuous actions: env steps/s.
+2. **Env**: ``CounterScene-v0`` with its default config (``envs/bench.py``, random actions,
+   resets included): env steps/s and the share of step time spent in world-model replans.
+3. **Replans**: every replan of step 2 timed on its own by the closed loop: median and p95 [ms].
+   FLOPs of one replan are counted with torch's flop counter (matmuls and attention only:
+   element-wise work is not counted, so the fraction of peak is a lower bound) and set against
+   the median replan time and the CPU's matmul peak (``world_model/bench.py``).
+4. **Stress**: seconds per ``counterscene stress`` episode (intersection, IDM planner, full
+   guidance, the default batch).
+5. **Memory**: peak resident set size of the process [MB] (``getrusage``).
+
+The model's own sampling call (``world_model/bench.py``, the previous ``bench``) is reported
+beside them under ``"model"``.
+"""
+
+from __future__ import annotations
+
+import resource
+import statistics
+import time
+from typing import Any
+
+import numpy as np
+
+#: highway-env's anchor env and the frequencies it runs at [Hz].
+ANCHOR_ENV = "intersection-v2"
+ANCHOR_FREQUENCY = 10
+
+
+def bench_highway_env(steps: int, seed: int = 0) -> dict[str, Any]:
+    """Steps per second of highway-env's IDM traffic env (module docstring, item 1)."""
+    import gymnasium as gym
+    import highway_env  # noqa: F401  (registers the envs)
+
+    env = gym.make(
+        ANCHOR_ENV,
+        config={"policy_frequency": ANCHOR_FREQUENCY, "simulation_frequency": ANCHOR_FREQUENCY},
+    )
+    env.action_space.seed(seed)
+    env.reset(seed=seed)
+    start, episodes = time.perf_counter(), 1
+    for _ in range(steps):
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        if terminated or truncated:
+            env.reset()
+            episodes += 1
+    seconds = time.perf_counter() - start
+    env.close()
+    return {"env": ANCHOR_ENV, "steps": steps, "episodes": episodes, "steps_per_s": steps / seconds}
+
+
+def bench_env_and_replans(steps: int, seed: int = 0) -> dict[str, Any]:
+    """``CounterScene-v0`` steps/s and the time of each replan it made (items 2 and 3)."""
+    from counterscene_env.envs.single_agent import CounterSceneEnv
+
+    env = CounterSceneEnv()
+    rng = np.random.default_rng(seed)
+    env.reset(seed=seed)
+    replans: list[float] = []
+    replan_s = step_s = 0.0
+    start, episodes = time.perf_counter(), 1
+    for _ in range(steps):
+        ep = env.loop.episodes[0]
+        n, before = ep.replans, ep.replan_seconds
+        # Seeded at every step: each reset builds a new action space (as in envs/bench.py).
+        env.action_space.seed(int(rng.integers(2**31)))
+        action = env.action_space.sample()
+        t = time.perf_counter()
+        _, _, terminated, truncated, _ = env.step(action)
+        step_s += time.perf_counter() - t
+        if ep.replans > n:  # the loop times its own replans: read its figure
+            replans.append((ep.replan_seconds - before) / (ep.replans - n))
+            replan_s += ep.replan_seconds - before
+        if terminated or truncated:
+            env.reset()
+            episodes += 1
+    seconds = time.perf_counter() - start
+    flops = _replan_flops(env)
+    env.close()
+    return {
+        "steps": steps,
+        "episodes": episodes,
+        "steps_per_s": steps / seconds,
+        "replan_share": replan_s / step_s if step_s else float("nan"),
+        "replan_s": replans,
+        "flops_per_replan": flops,
+    }
+
+
+def _replan_flops(env) -> int:
+    """FLOPs of the env's next replan (a fresh episode, stepped until a replan happens)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    env.reset(seed=12345)
+    ep = env.loop.episodes[0]
+    counter = FlopCounterMode(display=False)
+    for _ in range(100):
+        n = ep.replans
+        with counter:
+            _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        if ep.replans > n:
+            return int(counter.get_total_flops())
+        if terminated or truncated:
+            break
+        counter = FlopCounterMode(display=False)
+    return 0
+
+
+def bench_stress(episodes: int, model_dir: str = "default", seed: int = 100000) -> dict[str, Any]:
+    """Seconds per stress episode: intersection, IDM, full guidance (item 4)."""
+    from counterscene_env.stress import StressConfig, run_episodes
+    from counterscene_env.world_model import load_model
+
+    config = StressConfig(scenario="intersection", episodes=episodes, seed=seed, planner="idm")
+    model = load_model(model_dir)
+    start = time.perf_counter()
+    run_episodes(model, config, progress=False)
+    return {"episodes": episodes, "s_per_episode": (time.perf_counter() - start) / episodes}
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far [MB] (Linux reports KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def run_bench(
+    steps: int = 300,
+    episodes: int = 4,
+    model_runs: int = 20,
+    seed: int = 0,
+    model_dir: str = "default",
+) -> dict[str, Any]:
+    """Every figure of the module docstring, in one process; the JSON of ``bench --json``.
+
+    Args:
+        steps: env steps of the anchor and of ``CounterScene-v0`` each.
+        episodes: stress episodes.
+        model_runs: timed sampling calls of the model alone.
+        seed: seeds the actions and resets.
+        model_dir: the world model of the stress run and the model figures (the env uses
+            its config's model, the shipped one by default).
+    """
+    from counterscene_env.world_model import load_model
+    from counterscene_env.world_model.bench import bench_model, matmul_peak_gflops
+
+    anchor = bench_highway_env(steps, seed)
+    env = bench_env_and_replans(steps, seed)
+    stress = bench_stress(episodes, model_dir)
+    model = bench_model(load_model(model_dir), runs=model_runs)
+    peak = matmul_peak_gflops()
+    times = sorted(env.pop("replan_s"))
+    median = statistics.median(times) if times else float("nan")
+    achieved = env["flops_per_replan"] / median / 1e9 if times else float("nan")
+    return {
+        "highway_env_steps_per_s": anchor["steps_per_s"],
+        "env_steps_per_s": env["steps_per_s"],
+        "env_vs_highway_env": env["steps_per_s"] / anchor["steps_per_s"],
+        "replan_share": env["replan_share"],
+        "replan_ms": {
+            "median": 1000 * median,
+            "p95": 1000 * float(np.percentile(times, 95)) if times else float("nan"),
+            "count": len(times),
+        },
+        "stress_s_per_episode": stress["s_per_episode"],
+        "flops_per_replan": env["flops_per_replan"],
+        "achieved_gflops": achieved,
+        "peak_gflops": peak,
+        "peak_fraction": achieved / peak,
+        "peak_rss_mb": peak_rss_mb(),
+        "runs": {"anchor": anchor, "env": env, "stress": stress},
+        "model": model,
+    }
