@@ -108,7 +108,8 @@ def road_from_features(features: Mapping[Any, Any], source: str) -> tuple[RoadMa
         source: the file name, for error messages.
 
     Returns:
-        The road map and a summary ``{"lanes", "outlines", "road_edges", "surfaces"}`` (counts).
+        The road map and a summary ``{"lanes", "outline_rings", "road_edges", "surfaces"}``
+        (counts).
 
     Raises:
         MapError: a feature of a used type has a malformed polyline or polygon.
@@ -144,47 +145,44 @@ def road_from_features(features: Mapping[Any, Any], source: str) -> tuple[RoadMa
 
 
 def _sort_features(features: Mapping[Any, Any], source: str) -> _Features:
-    """Read each feature the road uses into :class:`_Features`; skip the others."""
+    """Read each feature the road uses into :class:`_Features`; skip the others. Every
+    feature's points (any type) also mark the map's extent."""
     feats = _Features()
     for key, feat in features.items():
         if not isinstance(feat, Mapping):
             raise MapError(f"{source}: map_features[{key!r}] is not a dict")
         ftype = str(feat.get("type", ""))
         where = f"{source}: map_features[{key!r}]"
-        for name in ("polyline", "polygon"):
-            pts = _points(feat.get(name), f"{where}.{name}", allow_none=True)
-            if pts is not None:
-                feats.extent_points.append(pts)
+        line = _points(feat.get("polyline"), f"{where}.polyline", allow_none=True)
+        poly = _points(feat.get("polygon"), f"{where}.polygon", allow_none=True)
+        feats.extent_points += [p for p in (line, poly) if p is not None]
         if ftype.startswith("LANE") and ftype != "LANE_BIKE_LANE":
-            _add_lane(feats, str(key), feat, where)
-        else:
-            _add_surface(feats, str(key), ftype, feat, where)
+            if line is None:
+                raise MapError(f"{where}.polyline: missing")
+            _add_lane(feats, str(key), feat, line, poly, where)
+        elif ftype in SURFACE_TYPES:
+            ring = line if poly is None else poly
+            if ring is not None and len(ring) >= 3:
+                feats.surfaces.append(shapely.make_valid(shapely.Polygon(ring)))
+        elif line is not None and len(line) >= 2:
+            if ftype in EDGE_TYPES:
+                feats.edges.append(line)
+            elif ftype == OUTLINE_TYPE and str(key).startswith(OUTLINE_PREFIX):
+                feats.outlines.append(line)
     return feats
 
 
-def _add_surface(
-    feats: _Features, key: str, ftype: str, feat: Mapping[str, Any], where: str
+def _add_lane(
+    feats: _Features,
+    key: str,
+    feat: Mapping[str, Any],
+    line: np.ndarray,
+    poly: np.ndarray | None,
+    where: str,
 ) -> None:
-    """A drivable polygon, a road edge or a drivable-area outline; other types are skipped."""
-    if ftype in SURFACE_TYPES:
-        ring = _points(feat.get("polygon", feat.get("polyline")), f"{where}.polygon", True)
-        if ring is not None and len(ring) >= 3:
-            feats.surfaces.append(shapely.make_valid(shapely.Polygon(ring)))
-    elif ftype in EDGE_TYPES:
-        line = _points(feat.get("polyline"), f"{where}.polyline", True)
-        if line is not None and len(line) >= 2:
-            feats.edges.append(line)
-    elif ftype == OUTLINE_TYPE and key.startswith(OUTLINE_PREFIX):
-        line = _points(feat.get("polyline"), f"{where}.polyline", True)
-        if line is not None and len(line) >= 2:
-            feats.outlines.append(line)
-
-
-def _add_lane(feats: _Features, key: str, feat: Mapping[str, Any], where: str) -> None:
-    line = _points(feat.get("polyline"), f"{where}.polyline")
+    """One lane: centre line ``[P, 2]`` m, optional polygon, width and links."""
     if len(line) < 2:
         return  # a single point has no direction: not a lane
-    poly = _points(feat.get("polygon"), f"{where}.polygon", allow_none=True)
     if poly is not None and len(poly) < 3:
         poly = None
     feats.keys.append(key)
