@@ -152,6 +152,31 @@ def commonroad_egos(source: Any, current_index: int = 30) -> list[str]:
     return [tracks.ids[r] for r in _ego_rows(tracks, ci)]
 
 
+def commonroad_files(dir_or_file: str | os.PathLike) -> list[Path]:
+    """The ``.xml`` files under a directory (sorted, recursive), or the one file given."""
+    path = Path(dir_or_file)
+    files = sorted(path.rglob("*.xml")) if path.is_dir() else [path]
+    if not path.exists() or not files:
+        raise FileNotFoundError(f"{path}: no CommonRoad .xml files")
+    return files
+
+
+def duplicate_files(dir_or_file: str | os.PathLike) -> dict[str, str]:
+    """``{file: first file with the same traffic}`` over :func:`commonroad_files`, found from
+    the tracks alone (no road, no scene is built); unreadable files are left out."""
+    seen: dict[str, str] = {}
+    duplicates = {}
+    for f in commonroad_files(dir_or_file):
+        try:
+            tracks = _read_tracks(_read_file(f)[0], f.name)
+        except CommonRoadError:
+            continue
+        first = seen.setdefault(_traffic_hash(tracks), f.name)
+        if first != f.name:
+            duplicates[f.name] = first
+    return duplicates
+
+
 def iter_commonroad(
     dir_or_file: str | os.PathLike,
     all_egos: bool = False,
@@ -172,10 +197,7 @@ def iter_commonroad(
             ``scenes``, ``duplicates`` (``{file: first file with that traffic}``),
             ``skipped`` (``{file: reason}``) and ``too_short`` (how many of those were).
     """
-    path = Path(dir_or_file)
-    files = sorted(path.rglob("*.xml")) if path.is_dir() else [path]
-    if not path.exists() or not files:
-        raise FileNotFoundError(f"{path}: no CommonRoad .xml files")
+    files = commonroad_files(dir_or_file)
     report = {} if report is None else report
     report.update(files=len(files), scenes=0, duplicates={}, skipped={}, too_short=0)
     seen: dict[str, str] = {}  # traffic hash -> first file with it

@@ -82,22 +82,8 @@ def convert_scenarionet(
     files = sorted(str(p) for p in Path(src).rglob("*.pkl"))
     if not files:
         raise FileNotFoundError(f"{src}: no ScenarioNet .pkl files found")
-    # Blocks are positions in the sorted file list: a resume over a changed folder would
-    # duplicate some files and skip others, so the list itself is part of the parameters.
-    listing = hashlib.sha256("\n".join(files).encode()).hexdigest()[:16]
-    params = {
-        "source": "scenarionet",
-        "src": str(Path(src).resolve()),
-        "shard_size": int(shard_size),
-        "files": len(files),
-        "file_list_sha256": listing,
-    }
-    blocks = [files[i : i + shard_size] for i in range(0, len(files), shard_size)]
-
-    def block_args(k: int, limit: int) -> tuple:
-        return (_convert_block, str(out), k, blocks[k])
-
-    return _build(Path(out), params, None, block_args, len(blocks), workers, progress)
+    params = {"source": "scenarionet"}
+    return _convert_files(src, out, files, params, (_convert_block,), shard_size, workers, progress)
 
 
 def convert_commonroad(
@@ -112,26 +98,41 @@ def convert_commonroad(
     """Convert the CommonRoad ``.xml`` files under ``src`` into shards in ``out``: one scene
     per distinct recording (files that repeat another's traffic are listed, not converted),
     or with ``all_egos`` one per ego choice. Returns the manifest."""
-    from counterscene_env.scene.commonroad import iter_commonroad
+    from counterscene_env.scene.commonroad import commonroad_files, duplicate_files
 
-    report: dict = {}
-    for _ in iter_commonroad(src, report=report):  # a first pass finds the duplicates
-        pass
-    files = sorted(str(p) for p in Path(src).rglob("*.xml") if p.name not in report["duplicates"])
-    listing = hashlib.sha256("\n".join(files).encode()).hexdigest()[:16]
+    duplicates = duplicate_files(src)
+    files = [str(p) for p in commonroad_files(src) if p.name not in duplicates]
+    params = {"source": "commonroad", "all_egos": bool(all_egos), "duplicates": duplicates}
+    worker = (_convert_commonroad_block, bool(all_egos))
+    return _convert_files(src, out, files, params, worker, shard_size, workers, progress)
+
+
+def _convert_files(
+    src: str | os.PathLike,
+    out: str | os.PathLike,
+    files: list[str],
+    params: dict,
+    worker: tuple,
+    shard_size: int,
+    workers: int,
+    progress: bool,
+) -> dict:
+    """Convert sorted ``files`` in blocks of ``shard_size``: ``worker`` is the block function
+    and its arguments after ``(out, k, block files)``; ``params`` name the source."""
+    # Blocks are positions in the sorted file list: a resume over a changed folder would
+    # duplicate some files and skip others, so the list itself is part of the parameters.
     params = {
-        "source": "commonroad",
+        **params,
         "src": str(Path(src).resolve()),
         "shard_size": int(shard_size),
-        "all_egos": bool(all_egos),
         "files": len(files),
-        "file_list_sha256": listing,
-        "duplicates": report["duplicates"],
+        "file_list_sha256": hashlib.sha256("\n".join(files).encode()).hexdigest()[:16],
     }
     blocks = [files[i : i + shard_size] for i in range(0, len(files), shard_size)]
+    fn, *extra = worker
 
     def block_args(k: int, limit: int) -> tuple:
-        return (_convert_commonroad_block, str(out), k, blocks[k], all_egos)
+        return (fn, str(out), k, blocks[k], *extra)
 
     return _build(Path(out), params, None, block_args, len(blocks), workers, progress)
 
