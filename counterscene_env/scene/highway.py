@@ -165,7 +165,7 @@ def _simulate(scenario: str, seed: int, cfg: GeneratorConfig) -> tuple[_Recorder
     """Warm up and run the env, logging every 10 Hz step: (log, ego vehicle, road network, T)."""
     with _pristine_idm_constants():
         env = _make_env(scenario)
-        env.reset(seed=int(seed))
+        env.reset(seed=int(seed))  # a new road and traffic from this seed alone
         traffic = _Traffic(scenario, env)
         ego = traffic.setup()
         frames_per_step = cfg.sim_frequency // 10
@@ -182,7 +182,6 @@ def _simulate(scenario: str, seed: int, cfg: GeneratorConfig) -> tuple[_Recorder
                 for _ in range(frames_per_step):
                     traffic.step(1.0 / cfg.sim_frequency)
         network = env.road.network
-        env.close()
     return log, ego, network, n_steps
 
 
@@ -223,9 +222,17 @@ _ENV_CONFIG = {
 _VEHICLE_TYPE = f"{__name__}.ForwardIDMVehicle"
 
 
+#: One highway-env env per scenario, built on first use: building one (its spaces, a first
+#: road) took a seventh of each scene's generation, and ``reset(seed=...)`` rebuilds the road
+#: and the traffic from the seed alone, so a reused env records exactly what a new one would.
+_ENVS: dict[str, Any] = {}
+
+
 def _make_env(scenario: str):
-    config = {**_ENV_CONFIG[scenario], "other_vehicles_type": _VEHICLE_TYPE}
-    return _ENV_CLASSES[scenario](config=config)
+    if scenario not in _ENVS:
+        config = {**_ENV_CONFIG[scenario], "other_vehicles_type": _VEHICLE_TYPE}
+        _ENVS[scenario] = _ENV_CLASSES[scenario](config=config)
+    return _ENVS[scenario]
 
 
 class _Traffic:

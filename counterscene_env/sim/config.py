@@ -46,6 +46,13 @@ class SimConfig:
             model's default).
         map_guidance: step size of the world model's map guidance on every agent (None: the
             model's default).
+        lane_steering: Adam steps of the world model's final-step lane keeping (None: the
+            model's default; 0: off). 10 keeps as many points on their lanes as the shipped
+            model's 20 at half the cost (docs/performance.md).
+        warm_start_steps: denoising steps of a warm-started replan: after an episode's first
+            replan, each window starts from the previous plan shifted to "now", noised to the
+            level of the sampler's last ``warm_start_steps`` steps, and only those are run
+            (docs/performance.md, "Warm start"); 0: every replan samples from pure noise.
         realism_weight: weight of the realism cost (agents overlapping or off their lanes,
             sim/realism.py) in the choice among samples; 0: guidance loss only.
         cover_radius: an agent is planned from a model window only if it is within this many
@@ -73,6 +80,8 @@ class SimConfig:
     sampling_steps: int | None = bounded(None, ge=1)
     eta: float | None = bounded(None, ge=0)
     map_guidance: float | None = bounded(None, ge=0)
+    lane_steering: int | None = bounded(10, ge=0)
+    warm_start_steps: int = bounded(3, ge=0)
     realism_weight: float = bounded(1.0, ge=0)
     cover_radius: float = bounded(25.0, gt=0)
     max_windows: int = bounded(1, ge=1)

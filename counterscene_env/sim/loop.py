@@ -186,6 +186,8 @@ class ClosedLoop:
             plan_yaws=np.zeros((N, F)),
             plan_speeds=np.zeros((N, F)),
             plan_start=np.zeros(N, np.int64),
+            plan_tokens=np.zeros((N, self.model.config.action_tokens, 2), np.float32),
+            tokens_start=np.full(N, -1, np.int64),
             planned=np.zeros(N, bool),
             progress=np.full(N, np.nan),
         )

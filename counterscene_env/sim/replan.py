@@ -53,7 +53,11 @@ class Replanner:
             steps=config.sampling_steps,
             eta=config.eta,
             map_guidance=config.map_guidance,
+            lane_steering=config.lane_steering,
         )
+        # Normalised tokens of zero acceleration and yaw rate: the warm start of an agent
+        # with no previous prediction (it keeps its speed and course).
+        self.still = model.normalize(torch.zeros(2)).numpy()
 
     # ------------------------------------------------------------------ selection
     def select_on_log(self, ep: Episode) -> None:
@@ -191,10 +195,14 @@ class Replanner:
             for window in self.windows(ep, sim):
                 owner.append(i)
                 windows.append(window)
-        pred, best = self._sample(eps, owner, windows)
-        traj = pred.trajectory.numpy()
-        for j, (o, window) in enumerate(zip(owner, windows, strict=True)):
-            _apply_plan(eps[o], window, traj[j, best[j]], pred.valid[j])
+        # A warm start needs a previous prediction: episodes at their first replan sample
+        # from pure noise, in a call of their own (an episode's result never depends on
+        # which other episodes share its call).
+        warm = [self.config.warm_start_steps > 0 and eps[o].replans > 0 for o in owner]
+        for group in (False, True):
+            js = [j for j, w in enumerate(warm) if w == group]
+            if js:
+                self._plan([eps[owner[j]] for j in js], [windows[j] for j in js], group)
         planned_now: dict[int, set[int]] = {}
         for o, window in zip(owner, windows, strict=True):
             planned_now.setdefault(o, set()).update(window.plan_rows)
@@ -204,11 +212,47 @@ class Replanner:
             ep.replans += 1
             ep.replan_seconds += (time.perf_counter() - started) / len(eps)
 
+    def _plan(self, eps: list[Episode], windows: list[ModelWindow], warm: bool) -> None:
+        """Sample windows ``windows`` (of episodes ``eps``, one per window) in one call and
+        apply the chosen samples as plans; ``warm``: start from the previous predictions."""
+        owner = list(range(len(eps)))
+        init = None
+        if warm:
+            init = np.stack([self.warm_start(ep, w) for ep, w in zip(eps, windows, strict=True)])
+        pred, best = self._sample(eps, owner, windows, init)
+        traj, tokens = pred.trajectory.numpy(), pred.normalized.numpy()
+        for j, (ep, window) in enumerate(zip(eps, windows, strict=True)):
+            _apply_plan(ep, window, traj[j, best[j]], tokens[j, best[j]], pred.valid[j])
+
+    def warm_start(self, ep: Episode, window: ModelWindow) -> np.ndarray:
+        """``[K, Ta, 2]`` normalised tokens to start window ``window``'s sampling from: each
+        agent's last prediction shifted by the steps since it began (its last action held
+        for the steps it did not cover), or ``still`` for an agent with none."""
+        rows = window.rows
+        s = self.model.config.action_stride
+        known = rows >= 0
+        r = np.where(known, rows, 0)
+        begun = ep.tokens_start[r]
+        tokens = ep.plan_tokens[r]  # [K, Ta, 2]
+        K, Ta = tokens.shape[:2]
+        F = Ta * s
+        shift = ep.t + 1 - begun
+        known &= (begun >= 0) & (shift < F)
+        steps = np.repeat(tokens, s, axis=1)  # [K, F, 2] the per-step actions
+        idx = np.minimum(shift[:, None] + np.arange(F), F - 1)
+        shifted = np.take_along_axis(steps, idx[..., None], 1).reshape(K, Ta, s, 2).mean(2)
+        return np.where(known[:, None, None], shifted, self.still).astype(np.float32)
+
     def _sample(
-        self, eps: Sequence[Episode], owner: list[int], windows: list[ModelWindow]
+        self,
+        eps: Sequence[Episode],
+        owner: list[int],
+        windows: list[ModelWindow],
+        init: np.ndarray | None = None,
     ) -> tuple[Prediction, np.ndarray]:
-        """One guided sampling call for every window; returns the model's prediction and the
-        ``[W]`` index of the sample kept per window."""
+        """One guided sampling call for every window (warm-started from ``init [W, K, Ta,
+        2]`` when given); returns the model's prediction and the ``[W]`` index of the sample
+        kept per window."""
         c, g = self.config, self.guidance
         batch = collate([w.arrays for w in windows])
         conflicts = [
@@ -230,7 +274,10 @@ class Replanner:
         )
         hook = make_guidance_hook(self.model, batch, targets, S, g) if g.enabled else None
         gens = [eps[o].generator for o in owner]
-        pred = self.model.sample(batch, S, gens, guidance=hook, **self.sample_kwargs)
+        warm = {}
+        if init is not None:
+            warm = dict(init=torch.from_numpy(init), init_steps=c.warm_start_steps)
+        pred = self.model.sample(batch, S, gens, guidance=hook, **self.sample_kwargs, **warm)
         ego_rows = [
             [r for r in (w.row_of(e) for e in eps[o].egos) if r >= 0]
             for w, o in zip(windows, owner, strict=True)
@@ -300,9 +347,15 @@ def simulated_scene(ep: Episode) -> Scene:
     return ep.factual.replace(positions=ep.positions, yaws=ep.yaws, speeds=ep.speeds, valid=valid)
 
 
-def _apply_plan(ep: Episode, window: ModelWindow, chosen: np.ndarray, valid) -> None:
+def _apply_plan(
+    ep: Episode, window: ModelWindow, chosen: np.ndarray, tokens: np.ndarray, valid
+) -> None:
     """Write the chosen sample ``[K, F, 4]`` (window frame) as the plans of the window's
-    ``plan_rows`` that the model could plan (``valid [K]``)."""
+    ``plan_rows`` that the model could plan (``valid [K]``), and its normalised action
+    tokens ``[K, Ta, 2]`` as every predicted agent's warm start."""
+    seen = (window.rows >= 0) & np.asarray(valid)
+    ep.plan_tokens[window.rows[seen]] = tokens[seen]
+    ep.tokens_start[window.rows[seen]] = ep.t + 1
     lookup = {int(r): k for k, r in enumerate(window.rows) if r >= 0}
     rows = np.array([r for r in window.plan_rows if valid[lookup[r]]], dtype=np.int64)
     if not rows.size:

@@ -79,6 +79,10 @@ class Episode:
         plan_positions: ``[N, F, 2]`` m, each agent's current plan; plan_yaws ``[N, F]`` rad;
             plan_speeds ``[N, F]`` m/s.
         plan_start: ``[N]`` step of each plan's index 0.
+        plan_tokens: ``[N, Ta, 2]`` each agent's last world-model prediction as normalised
+            action tokens (frame-free: acceleration and yaw rate), kept for the egos too: the
+            warm start of the next replan.
+        tokens_start: ``[N]`` step of each ``plan_tokens`` row's first action (-1: none yet).
         planned: ``[N]`` bool, agents the world model has planned.
         progress: ``[N]`` m along the current path (plan's or log's); NaN: not started.
         replans: world-model replans so far.
@@ -107,6 +111,8 @@ class Episode:
     plan_yaws: np.ndarray
     plan_speeds: np.ndarray
     plan_start: np.ndarray
+    plan_tokens: np.ndarray
+    tokens_start: np.ndarray
     planned: np.ndarray
     progress: np.ndarray
     replans: int = 0

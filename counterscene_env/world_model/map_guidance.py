@@ -130,11 +130,16 @@ def steer_onto_lanes(
     ok = lanes_ok[:, :, None].expand(N, M, P - 1).reshape(N, -1)
     rollout = _steering_rollout(model, normalized, state)
     # Each predicted point aims at its CANDIDATES nearest segments, chosen once: refreshing
-    # them as the points move bought little for its cost.
+    # them as the points move bought little for its cost. They are ranked by the distance to
+    # the segments' midpoints less their half-widths, one matrix product (``torch.cdist``)
+    # instead of an exact point-to-segment distance to every segment of the map, which
+    # dominated the steering's time (docs/performance.md); segments are short (a lane piece
+    # over its points), so the nearest midpoints hold the nearest segments.
     with torch.no_grad():
         xy = rollout(normalized)  # [N, K, F, 2]
-        gap = _segment_distance(xy.flatten(1, 2)[:, :, None], a[:, None], b[:, None])
-        gap = torch.where(ok[:, None], gap - half[:, None], torch.inf)  # [N, K*F, M*(P-1)]
+        mid = (a + b) / 2  # [N, M*(P-1), 2]
+        gap = torch.cdist(xy.flatten(1, 2), mid) - half[:, None]  # [N, K*F, M*(P-1)]
+        gap = torch.where(ok[:, None], gap, torch.inf)
         idx = gap.topk(min(CANDIDATES, gap.shape[-1]), dim=-1, largest=False).indices
         scene = torch.arange(N, device=idx.device)[:, None, None]
         shape = (*xy.shape[:3], idx.shape[-1])  # [N, K, F, C]

@@ -396,6 +396,8 @@ class WorldModel(nn.Module):
         guidance: GuidanceHook | None = None,
         map_guidance: float | None = None,
         lane_steering: int | None = None,
+        init: torch.Tensor | None = None,
+        init_steps: int = 0,
     ) -> Prediction:
         """Sample every agent's future, ``num_samples`` per scene, in one batched call.
 
@@ -415,6 +417,14 @@ class WorldModel(nn.Module):
                 config, 0 disables.
             lane_steering: Adam steps of final-step lane keeping on the finished samples
                 (``map_guidance.steer_onto_lanes``); default from the config, 0 disables.
+            init: ``[B, K, Ta, 2]`` normalised action tokens to start from instead of pure
+                noise (a warm start: the previous plan, shifted to "now"). It is noised to the
+                level of the sampler's last ``init_steps`` steps, ``x_t = sqrt(abar_t) init +
+                sqrt(1 - abar_t) eps``, and only those steps are run (SDEdit, Meng et al.
+                2022): the denoiser keeps what the previous plan got right and redraws the
+                detail the new history calls for.
+            init_steps: steps run from ``init``; ignored without ``init``, and a full sample
+                when it is not below the sampler's step count.
         """
         c = self.config
         sampler = sampler or c.sampler
@@ -454,6 +464,11 @@ class WorldModel(nn.Module):
 
         x = randn()
         timesteps = self.scheduler.timesteps.tolist()
+        if init is not None and 0 < init_steps < len(timesteps):
+            timesteps = timesteps[-init_steps:]
+            level = torch.full((B * num_samples,), timesteps[0], dtype=torch.long, device=device)
+            start = init.to(x.dtype).repeat_interleave(num_samples, 0)
+            x = self.scheduler.add_noise(start, x, level)  # x was drawn as the noise eps
         for t in timesteps:
             tt = torch.full((B * num_samples,), t, device=device, dtype=torch.long)
             with torch.no_grad():
