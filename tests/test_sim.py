@@ -252,3 +252,41 @@ def test_traffic_yields_to_the_ego_but_a_guided_adversary_does_not(model, guidan
         assert gap < 4.0 and not held
     else:  # its safety margins are what the guidance removes: it never yields
         assert not held and gap < 4.0
+
+
+def test_a_warm_start_begins_from_the_previous_plan_shifted_to_now(model, generated):
+    config = dataclasses.replace(SHORT, warm_start_steps=3, replan_every=5)
+    loop = ClosedLoop(model, config)
+    loop.reset([generated["intersection"]], [0])
+    loop.step(np.zeros((1, 2)))  # the first replan, from pure noise
+    ep = loop.episodes[0]
+    made = ep.t  # the plan's first action moves its agents into step `made`
+    seen = np.flatnonzero(ep.tokens_start >= 0)
+    assert seen.size and (ep.tokens_start[seen] == made).all()
+    for _ in range(3):
+        loop.step(np.zeros((1, 2)))
+    tokens = ep.plan_tokens.copy()
+    window = loop.replanner.windows(ep, loop.scene(0))[0]
+    init = loop.replanner.warm_start(ep, window)  # [K, Ta, 2]
+    s = model.config.action_stride
+    shift = ep.t + 1 - made
+    for k, row in enumerate(window.rows):
+        if row < 0 or ep.tokens_start[row] < 0:
+            np.testing.assert_allclose(
+                init[k], np.broadcast_to(loop.replanner.still, init[k].shape)
+            )
+            continue
+        steps = np.repeat(tokens[row], s, axis=0)  # per-step actions of the previous plan
+        steps = np.concatenate([steps[shift:], np.repeat(steps[-1:], shift, axis=0)])
+        np.testing.assert_allclose(init[k], steps.reshape(-1, s, 2).mean(1), rtol=1e-5)
+
+
+def test_warm_started_episodes_are_deterministic_and_differ_from_cold_ones(model, generated):
+    scene = generated["merge"]
+    warm = dataclasses.replace(SHORT, warm_start_steps=3)
+    a, _ = run(model, [scene], [5], warm)
+    b, _ = run(model, [scene], [5], warm)
+    cold, _ = run(model, [scene], [5], dataclasses.replace(SHORT, warm_start_steps=0))
+    assert np.array_equal(a.scene(0).positions, b.scene(0).positions)
+    assert a.episodes[0].replans == cold.episodes[0].replans > 1
+    assert not np.allclose(a.scene(0).positions, cold.scene(0).positions)

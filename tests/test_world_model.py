@@ -81,6 +81,31 @@ def test_same_seed_same_sample_different_seed_different(tiny, scene_batch):
     assert not torch.allclose(a.normalized[:, 0], a.normalized[:, 1])
 
 
+def test_a_warm_start_runs_only_its_last_steps(tiny, scene_batch):
+    calls = []
+    handle = tiny.denoiser.register_forward_hook(lambda *_: calls.append(1))
+    B, K = scene_batch["history"].shape[:2]
+    init = torch.zeros(B, K, TINY.action_tokens, 2)
+
+    def draw(**kw):
+        calls.clear()
+        pred = tiny.sample(scene_batch, 2, torch.Generator().manual_seed(0), steps=10, **kw)
+        return pred, len(calls)
+
+    try:
+        cold, n_cold = draw()
+        warm, n_warm = draw(init=init, init_steps=3)
+        full, n_full = draw(init=init, init_steps=10)  # not below the step count: a full sample
+    finally:
+        handle.remove()
+    assert (n_cold, n_warm, n_full) == (10, 3, 10)
+    assert torch.equal(full.trajectory, cold.trajectory)
+    assert torch.isfinite(warm.trajectory).all()
+    # Started near the init, a few steps stay nearer to it than a sample from pure noise.
+    mask = warm.valid[:, None].expand(-1, 2, -1)
+    assert warm.normalized[mask].abs().mean() < cold.normalized[mask].abs().mean()
+
+
 def test_output_shapes_and_finite_with_padding(tiny, scene_batch):
     B, S, K, F = scene_batch["history"].shape[0], 3, 4, 52
     assert (~scene_batch["agent_valid"]).any(), "want at least one padding slot in the batch"

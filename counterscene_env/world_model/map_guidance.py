@@ -26,6 +26,8 @@ LANE_MARGIN = 0.2  # m: steered points end at least this far inside a lane strip
 CANDIDATES = 6  # lane segments per predicted point that the steering may aim at
 STEER_LR = 0.1  # Adam step on the normalised yaw-rate tokens
 STEER_PRIOR = 0.01  # weight of the squared change of the tokens (normalised units)
+ADAM_BETAS = (0.9, 0.999)  # the steering's Adam moments (torch.optim.Adam's defaults)
+ADAM_EPS = 1e-8
 
 
 def _segment_distance(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -148,29 +150,36 @@ def steer_onto_lanes(
     steer = torch.zeros_like(normalized)
     steer[..., 1] = 1.0  # only the yaw-rate channel moves
     steer = steer * guided[..., None, None]
-    delta = torch.zeros_like(normalized, requires_grad=True)
-    opt = torch.optim.Adam([delta], lr=STEER_LR)
+    delta = torch.zeros_like(normalized)
+    # Adam (Kingma & Ba 2015), written out: torch.optim's first use imports torch._dynamo,
+    # seconds per process, most of the first replan (docs/performance.md).
+    m, v = torch.zeros_like(delta), torch.zeros_like(delta)
     # Adam on a hinge overshoots: once a plan is on the lane its gradient vanishes, and the
     # prior and the momentum carry it back off. So each agent keeps its best iterate.
     best = torch.zeros_like(normalized)
     best_cost = torch.full(guided.shape, torch.inf, device=normalized.device)
     for i in range(iterations + 1):
         with torch.enable_grad():
-            change = delta * steer
+            x = delta.requires_grad_(True)
+            change = x * steer
             p = rollout(normalized + change)  # [N, K, F, 2]
             dist = _segment_distance(p[..., None, :], ca, cb) - ch  # [N, K, F, C]
             excess = torch.where(cok, dist, 1e3).amin(-1).clamp(min=0)  # [N, K, F]
             excess = torch.where(guided[..., None], excess, 0.0)
             cost = (excess**2).mean(-1) + STEER_PRIOR * (change**2).sum((-1, -2))  # [N, K]
-            if i < iterations:
-                opt.zero_grad(set_to_none=True)
-                cost.sum().backward()
-        with torch.no_grad():
-            better = cost < best_cost
-            best = torch.where(better[..., None, None], delta, best)
-            best_cost = torch.where(better, cost, best_cost)
-        if i < iterations:
-            opt.step()
+            grad = torch.autograd.grad(cost.sum(), x)[0] if i < iterations else None
+        delta = delta.detach()
+        cost = cost.detach()
+        better = cost < best_cost
+        best = torch.where(better[..., None, None], delta, best)
+        best_cost = torch.where(better, cost, best_cost)
+        if grad is not None:
+            # m_k = b1 m + (1 - b1) g, v_k = b2 v + (1 - b2) g^2, bias-corrected by 1 - b^k.
+            m = ADAM_BETAS[0] * m + (1 - ADAM_BETAS[0]) * grad
+            v = ADAM_BETAS[1] * v + (1 - ADAM_BETAS[1]) * grad**2
+            m_hat = m / (1 - ADAM_BETAS[0] ** (i + 1))
+            v_hat = v / (1 - ADAM_BETAS[1] ** (i + 1))
+            delta = delta - STEER_LR * m_hat / (v_hat.sqrt() + ADAM_EPS)
     return (normalized + best * steer).detach()
 
 
