@@ -133,6 +133,15 @@ def test_eastbound_braking_flagged_by_signed_hbr_not_by_paper_formula(road):
     assert metrics.evaluate_scene(scene)["per_second"]["1"]["HBR"] == 1.0
 
 
+def test_ego_peak_deceleration_is_its_strongest_braking_whatever_the_heading(road):
+    # 20 m/s braking at 5 m/s^2 for 3 s, westbound: the signed deceleration, not |a| cos psi.
+    assert metrics.evaluate_scene(single_car(road, 20.0, -5.0, math.pi))[
+        "ego_peak_deceleration"
+    ] == pytest.approx(5.0, abs=1e-6)
+    # A car that only speeds up never braked.
+    assert metrics.evaluate_scene(single_car(road, 10.0, 2.0, 0.0))["ego_peak_deceleration"] == 0.0
+
+
 def test_westbound_accelerating_car_flagged_only_by_paper_formula(road):
     scene = single_car(road, 10.0, 5.0, math.pi)
     assert metrics.hbr_ego(scene) == 0.0

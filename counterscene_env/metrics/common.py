@@ -32,6 +32,7 @@ SCENE_KEYS = (
     "orr_moving",
     "min_ttc",
     "min_clearance_adversary",
+    "ego_peak_deceleration",
 )
 
 

@@ -36,6 +36,7 @@ from counterscene_env.metrics.safety import (
     hbr_all_of,
     hbr_ego_of,
     hbr_paper,
+    longitudinal_acceleration,
     min_clearance,
     min_ttc_ego,
 )
@@ -70,8 +71,9 @@ def evaluate_scene(
         ``cr``, ``cr_all_agents``, ``cr_non_ego``, ``cr_ego_adversary``, ``hbr_ego``,
         ``hbr_all``, ``hbr_paper``, ``orr`` (fractions; also split into ``orr_parked`` over the
         vehicles parked for the whole rollout, :func:`parked_agents`, and ``orr_moving`` over
-        the others), ``min_ttc`` (s) and
-        ``min_clearance_adversary`` (m).
+        the others), ``min_ttc`` (s), ``min_clearance_adversary`` (m) and
+        ``ego_peak_deceleration`` (m/s^2, the ego's strongest braking over the rollout from the
+        same samples HBR thresholds; 0 if it never slows, NaN without samples).
     """
     ego_hits = ego_collision_steps(sim)
     overlaps = agent_overlaps(sim)
@@ -79,6 +81,9 @@ def evaluate_scene(
     parked = parked_agents(sim)
     flags, mask = hard_braking_flags(sim, None, "position", smooth, HARD_BRAKE_THRESHOLD)
     e = sim.ego_index
+    acc, acc_ok = longitudinal_acceleration(sim, "position", smooth)
+    ego_acc = acc[e][acc_ok[e]]
+    peak_decel = max(0.0, -float(ego_acc.min())) if ego_acc.size else math.nan
     dist = ok = None
     if factual is not None:
         dist, ok = displacement_steps(sim, factual)
@@ -124,6 +129,7 @@ def evaluate_scene(
         "orr_moving": off_road_rate_of(sim, off, None, True, ~parked),
         "min_ttc": min_ttc_ego(sim),
         "min_clearance_adversary": clearance,
+        "ego_peak_deceleration": peak_decel,
     }
 
 
