@@ -70,3 +70,14 @@ def test_bad_arguments():
 def test_duration_comes_from_the_argument_or_the_config():
     assert generate("merge", seed=0, config=GeneratorConfig(duration=14.0)).num_steps == 141
     assert generate("merge", seed=0, duration=13.5).num_steps == 136
+
+
+def test_a_mixed_spec_takes_its_roads_in_turn_each_from_the_seed():
+    from counterscene_env.scene.sources import check_spec, scenes_for
+
+    mixed = [s.scenario_id for s in scenes_for("merge,roundabout", 3, 10)]
+    merge = [s.scenario_id for s in scenes_for("merge", 2, 10)]
+    roundabout = [s.scenario_id for s in scenes_for("roundabout", 1, 10)]
+    assert mixed == [merge[0], roundabout[0], merge[1]]
+    with pytest.raises(ValueError, match="'nowhere'"):
+        check_spec("merge,nowhere")

@@ -4,7 +4,9 @@ A spec is a generated road (``highway``, ``merge``, ``intersection``, ``roundabo
 highway-env recording per episode), ``scenarionet:DIR`` (real logs converted by ScenarioNet),
 ``commonroad:DIR`` (CommonRoad XML scenarios, one scene per distinct recording), a
 dataset directory or shard file written by ``counterscene generate``, or (for an env) a list of
-any of these (each episode picks one uniformly).
+any of these (each episode picks one uniformly). A stress run takes a mixture as one string,
+the specs joined by commas (``highway,merge,intersection,roundabout``): its episodes take the
+specs in turn.
 
 - :class:`SceneSource` draws one scene per env reset from the generator the env passes, so the
   same env seed gives the same scenes.
@@ -29,12 +31,30 @@ from counterscene_env.scene.core import Scene, playable
 SEED_RANGE = 2**31 - 1
 
 
+#: Joins the specs of a mixed stress run.
+MIX_SEPARATOR = ","
+
+
+def mixed_parts(spec: str) -> list[str]:
+    """The specs of a mixture ``a,b,...`` (a path that exists, commas and all, is one spec)."""
+    if MIX_SEPARATOR not in spec or spec_path(spec).exists():
+        return [spec]
+    return [part.strip() for part in spec.split(MIX_SEPARATOR)]
+
+
 def check_spec(spec: str) -> str:
-    """``spec`` if it is a generated road or an existing path (after ``scenarionet:``).
+    """``spec`` if it is a generated road, an existing path (after ``scenarionet:``), or a
+    comma-joined mixture of these.
 
     Raises:
-        ValueError: neither (the message lists the roads and the path forms).
+        ValueError: none of these (the message names the bad part, the roads and the path
+            forms).
     """
+    parts = mixed_parts(spec)
+    if len(parts) > 1:
+        for part in parts:
+            check_spec(part)
+        return spec
     if spec not in Scenario.values() and not spec_path(spec).exists():
         raise ValueError(
             f"unknown scenario {spec!r}: not one of {list(Scenario.values())}, and no such "
@@ -122,8 +142,17 @@ def scenes_for(spec: str, episodes: int, seed: int) -> Iterator[Scene]:
 
     A generated road gives the first ``episodes`` safe seeds from ``seed``, exactly the scenes
     ``counterscene generate --scenario S --scenes N --seed S0`` writes; a stored spec gives its
-    scenes in order. Sources with fewer scenes than episodes are cycled.
+    scenes in order. Sources with fewer scenes than episodes are cycled. In a mixture
+    ``a,b,...`` of n specs, episode i is the ``i // n``-th scene of part ``i % n``.
     """
+    parts = mixed_parts(spec)
+    if len(parts) > 1:
+        n = len(parts)
+        # Part j serves episodes j, j + n, ...: ceil((episodes - j) / n) of them.
+        sources = [scenes_for(p, -(-(episodes - j) // n), seed) for j, p in enumerate(parts)]
+        for i in range(episodes):
+            yield next(sources[i % n])
+        return
     if spec in Scenario.values():
         from counterscene_env.scene.highway import generate
 
