@@ -160,11 +160,17 @@ def evaluate(args: Args, path: Path, out: Path) -> dict:
     """Stress rows: the PPO policy and IDM, each with guidance none and full."""
     from counterscene_env.metrics import json_safe
     from counterscene_env.sim import SimConfig
-    from counterscene_env.stress import StressConfig, run_episodes, run_policy_episodes, summarize
+    from counterscene_env.stress import (
+        StressConfig,
+        run_episodes,
+        run_policy_episodes,
+        summarize,
+        timings,
+    )
     from counterscene_env.world_model import load_model
 
     keys = ("cr", "cr_ego_adversary", "hbr_ego", "orr", "mean_min_ttc",
-            "mean_min_clearance_adversary", "fallbacks", "seconds_per_episode")  # fmt: skip
+            "mean_min_clearance_adversary", "fallbacks")  # fmt: skip
     rows = {}
     for planner in (f"sb3:{path}", "idm"):
         for guidance in ("none", "full"):
@@ -183,6 +189,7 @@ def evaluate(args: Args, path: Path, out: Path) -> dict:
             summary = summarize(records, config)
             name = f"{'ppo' if planner != 'idm' else 'idm'} {guidance}"
             rows[name] = {k: summary[k] for k in keys}
+            rows[name]["seconds_per_episode"] = timings(records)["seconds_per_episode"]
             print(name, json.dumps(json_safe(rows[name])))
     (out / "eval.json").write_text(json.dumps(json_safe(rows), indent=2) + "\n")
     return rows

@@ -119,7 +119,8 @@ class SB3Policy:
     Unlike the planners above it acts on highway-env observations, so ``counterscene stress
     --planner sb3:PATH.zip`` runs it through ``CounterScene-v0``. The observation and action
     config it needs come from ``PATH.env.json`` next to the zip when there is one (the recipes
-    in ``agents/`` write it), else from the env's defaults.
+    in ``agents/`` write it), or, for a policy trained on a highway-env env, from that env's
+    config (``--like ENV_ID``, ``envs.like``), else from the env's defaults.
 
     Args:
         path: the ``.zip`` written by ``model.save``.
@@ -185,7 +186,7 @@ class SB3Policy:
                 f"{self.path.name} was trained on observations {obs} and actions {act}, but "
                 f"the env gives {observation_space} and {action_space}: configure the env's "
                 "observation and action like the policy's training env (a PATH.env.json "
-                "sidecar, or --env-config)"
+                "sidecar, --like ENV_ID for a highway-env env, or --env-config)"
             )
         kwargs = dict(self.policy_kwargs)
         if (

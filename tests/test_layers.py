@@ -30,8 +30,9 @@ LAYERS = {
     "envs": 7,
     "stress": 8,
     "bench": 8,  # times stress runs beside the env and highway-env
-    "cli": 9,
-    "": 10,  # the package root: version and registration
+    "report": 9,  # reads stress runs, replays their episodes
+    "cli": 10,
+    "": 11,  # the package root: version and registration
 }
 
 

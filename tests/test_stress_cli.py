@@ -1,4 +1,5 @@
-"""`counterscene stress`: the paper's table row as JSON, per-episode records, errors."""
+"""`counterscene stress`: the paper's table row as JSON, per-episode records, timings apart,
+errors, and runs that survive a kill (``--resume``)."""
 
 from __future__ import annotations
 
@@ -32,7 +33,9 @@ def test_stress_json_summary_and_episode_records(shard, tmp_path, capsys):
     )
     assert code == 0
     summary = json.loads(out)
+    timings = summary.pop("timings")  # --json adds the run's timings to the summary
     assert summary["episodes"] == 3  # two scenes, cycled
+    assert summary["complete"] and summary["episodes_requested"] == 3
     assert set(summary["horizons"]) == {"1-4s", "5-7s", "8-10s"}
     for row in summary["horizons"].values():
         assert set(row) == {"ADE", "FDE", "ORR", "HBR", "CR"}
@@ -44,6 +47,11 @@ def test_stress_json_summary_and_episode_records(shard, tmp_path, capsys):
         assert key in summary
     assert summary["config"]["sim"]["guidance"] == "full"
     assert json.loads((out_dir / "metrics.json").read_text()) == summary
+    # Wall-clock figures live apart: metrics.json has none, timings.json has them.
+    assert not {"seconds_per_episode", "seconds_per_replan"} & set(summary)
+    assert json.loads((out_dir / "timings.json").read_text()) == timings
+    assert timings["episodes"] == timings["episodes_run"] == 3 and timings["workers"] == 1
+    assert timings["seconds_per_episode"] > 0 and timings["wall_seconds"] > 0
     lines = (out_dir / "episodes.jsonl").read_text().splitlines()
     assert len(lines) == 3
     first = json.loads(lines[0])
@@ -68,6 +76,10 @@ def test_stress_text_table(shard, capsys):
         (["--scenario", "merge", "--planner", "mpc"], "unknown planner 'mpc'"),
         (["--scenario", "merge", "--episodes", "0"], "episodes must be >= 1"),
         (["--scenario", "merge", "--model", "/no/such/model"], "/no/such/model"),
+        (["--scenario", "merge", "--workers", "0"], "--workers must be >= 1, got 0"),
+        (["--scenario", "merge", "--resume"], "--resume needs --out DIR"),
+        (["--scenario", "merge", "--like", "intersection-v1"], "--like applies to sb3"),
+        (["--scenario", "merge", "--env-config", "{}"], "--env-config applies to sb3"),
     ],
 )
 def test_stress_bad_input(args, message, capsys):
@@ -112,8 +124,14 @@ def _without_timings(line: str) -> dict:
     return record
 
 
+def _files(directory) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(directory.iterdir())}
+
+
 def test_a_stopped_run_resumes_without_repeating_an_episode(shard, tmp_path, capsys):
-    args = ["--scenario", shard, "--episodes", "3", "--batch", "1", "--duration", "0.5", "--json"]
+    """Killed in the middle of its first batch of two: the recorded episode is kept, the
+    other comes from that batch run again whole, and the files end as a run never stopped."""
+    args = ["--scenario", shard, "--episodes", "3", "--batch", "2", "--duration", "0.5", "--json"]
     full, cut = tmp_path / "full", tmp_path / "cut"
     assert stress(capsys, *args, "--out", str(full))[0] == 0
     lines = (full / "episodes.jsonl").read_text().splitlines()
@@ -122,14 +140,40 @@ def test_a_stopped_run_resumes_without_repeating_an_episode(shard, tmp_path, cap
     cut.mkdir()
     (cut / "run.json").write_text((full / "run.json").read_text())
     (cut / "episodes.jsonl").write_text(lines[0] + "\n" + lines[1][: len(lines[1]) // 2])
-    code, out, _ = stress(capsys, *args, "--out", str(cut))
+    before = _files(cut)
+    # Without --resume a directory holding episodes is refused, and left as it was.
+    code, _, err = stress(capsys, *args, "--out", str(cut))
+    assert code == 1
+    assert f"{cut} already holds 1 finished episode of this run" in err
+    assert "--resume" in err and "another --out" in err
+    assert _files(cut) == before
+    code, out, _ = stress(capsys, *args, "--out", str(cut), "--resume")
     assert code == 0
     resumed = (cut / "episodes.jsonl").read_text().splitlines()
     assert resumed[0] == lines[0]  # kept, not run again
     assert [_without_timings(x) for x in resumed] == [_without_timings(x) for x in lines]
     summary = json.loads(out)
-    assert summary["episodes"] == 3
-    assert summary["horizons"] == json.loads((full / "metrics.json").read_text())["horizons"]
+    assert summary["episodes"] == 3 and summary["complete"]
+    assert (cut / "metrics.json").read_bytes() == (full / "metrics.json").read_bytes()
+
+
+def test_two_runs_of_the_same_episodes_write_identical_metrics(shard, tmp_path, capsys):
+    """Timings (which differ run to run) are in timings.json, so metrics.json is the same."""
+    args = ["--scenario", shard, "--episodes", "2", "--duration", "0.5", "--quiet"]
+    for name in ("a", "b"):
+        assert stress(capsys, *args, "--out", str(tmp_path / name))[0] == 0
+    assert (tmp_path / "a" / "metrics.json").read_bytes() == (
+        tmp_path / "b" / "metrics.json"
+    ).read_bytes()
+    timings = [json.loads((tmp_path / n / "timings.json").read_text()) for n in ("a", "b")]
+    assert timings[0]["wall_seconds"] != timings[1]["wall_seconds"]  # they do differ
+
+
+def test_a_refused_run_writes_nothing(shard, tmp_path, capsys):
+    out = tmp_path / "never"
+    code, _, err = stress(capsys, "--scenario", shard, "--model", "/no/such", "--out", str(out))
+    assert code == 1 and "/no/such" in err
+    assert not out.exists()
 
 
 def test_a_run_directory_refuses_other_settings(shard, tmp_path, capsys):
@@ -163,12 +207,19 @@ def test_a_killed_stress_process_loses_no_finished_episode(shard, tmp_path):
     proc.wait()
     kept = log.read_text().splitlines()
     assert len(kept) >= 2
-    assert subprocess.run([*cmd, "--out", str(tmp_path / "killed")], env=env).returncode == 0
+    # The summary of the finished episodes is on disk too, even after SIGKILL.
+    partial = json.loads((tmp_path / "killed" / "metrics.json").read_text())
+    assert partial["complete"] is False and partial["episodes_requested"] == 6
+    assert 1 <= partial["episodes"] <= len(kept)
+    resume = [*cmd, "--out", str(tmp_path / "killed"), "--resume"]
+    assert subprocess.run(resume, env=env).returncode == 0
     assert subprocess.run([*cmd, "--out", str(tmp_path / "whole")], env=env).returncode == 0
     resumed = log.read_text().splitlines()
     whole = (tmp_path / "whole" / "episodes.jsonl").read_text().splitlines()
     assert resumed[: len(kept) - 1] == kept[: len(kept) - 1]  # finished ones untouched
     assert [_without_timings(x) for x in resumed] == [_without_timings(x) for x in whole]
+    metrics = [(tmp_path / d / "metrics.json").read_bytes() for d in ("killed", "whole")]
+    assert metrics[0] == metrics[1]
 
 
 def test_a_log_whose_last_line_lost_its_newline_appends_on_a_new_line(tmp_path):
@@ -176,8 +227,12 @@ def test_a_log_whose_last_line_lost_its_newline_appends_on_a_new_line(tmp_path):
 
     (tmp_path / "run.json").write_text('{"scenario": "merge"}')
     (tmp_path / "episodes.jsonl").write_text('{"episode": 0}\n{"episode": 1}')
-    log = EpisodeLog(tmp_path, {"scenario": "merge"})
+    with pytest.raises(ValueError, match="pass --resume"):
+        EpisodeLog(tmp_path, {"scenario": "merge"})
+    log = EpisodeLog(tmp_path, {"scenario": "merge"}, resume=True)
     assert [r["episode"] for r in log.records] == [0, 1]
+    # Opening changes nothing; the repair comes with the first append.
+    assert (tmp_path / "episodes.jsonl").read_text() == '{"episode": 0}\n{"episode": 1}'
     log.append([{"episode": 2}])
     lines = (tmp_path / "episodes.jsonl").read_text().splitlines()
     assert [json.loads(x)["episode"] for x in lines] == [0, 1, 2]

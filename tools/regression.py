@@ -41,6 +41,7 @@ TIMING_KEYS = frozenset(
         "time_s",
         "load_seconds",
         "eval_seconds",
+        "timings",  # `stress --json`: the run's wall-clock figures (timings.json)
     }
 )
 

@@ -9,6 +9,8 @@ Subcommands import what they need when they run, so ``counterscene --help`` is i
 - ``bench``: every speed figure in one run (highway-env anchor, env, replans, stress, RSS).
 - ``bench-env``: steps per second of ``CounterScene-v0``.
 - ``stress``: stress-test an ego planner against guided world-model traffic (paper's table).
+- ``report``: (re)build a stress run's report: html, markdown, plots, videos, command line.
+- ``compare``: several stress runs side by side, with intervals and paired tests.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from counterscene_env.cli import data, model, run
+from counterscene_env.cli import data, model, report, run
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -51,4 +53,6 @@ def _parser() -> argparse.ArgumentParser:
     model.add_bench(sub)
     run.add_bench_env(sub)
     run.add_stress(sub)
+    report.add_report(sub)
+    report.add_compare(sub)
     return parser

@@ -160,13 +160,19 @@ def _evaluation_scenes(args: argparse.Namespace) -> list:
     if args.scenes is not None and args.scenes < 1:
         raise ValueError(f"--scenes must be >= 1, got {args.scenes}")
     if args.scenario:
+        from tqdm.auto import tqdm
+
         from counterscene_env.scene.highway import generate
 
-        # The first --scenes safe seeds from --seed, as `counterscene generate` picks them.
+        # The first --scenes safe seeds from --seed, as `counterscene generate` picks them
+        # (about 0.5 s each: recording highway-env traffic, hence the bar).
         scenes, seed = [], args.seed
-        while len(scenes) < (args.scenes or DEFAULT_EVAL_SCENES):
-            scenes.append(generate(args.scenario, seed))
-            seed = scenes[-1].metadata["seed"] + 1
+        n = args.scenes or DEFAULT_EVAL_SCENES
+        with tqdm(total=n, desc="scenes", unit="scene", disable=args.quiet) as bar:
+            while len(scenes) < n:
+                scenes.append(generate(args.scenario, seed))
+                seed = scenes[-1].metadata["seed"] + 1
+                bar.update(1)
         return scenes
     if args.data:  # the first --scenes of each dataset
         from counterscene_env.scene.reading import iter_scenes

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+import time
+import warnings
 from pathlib import Path
 
 from counterscene_env.cli.common import (
@@ -46,10 +49,20 @@ def add_stress(sub) -> None:
         ),
     )
     st.add_argument(
+        "--like",
+        metavar="ENV_ID",
+        help=(
+            "sb3 planners: the observation, action and policy frequency of highway-env's "
+            "ENV_ID (its default config), e.g. intersection-v1, for a policy trained there "
+            "without a PATH.env.json sidecar"
+        ),
+    )
+    st.add_argument(
         "--env-config",
         help=(
             "sb3 planners: JSON object (or a .json file) of CounterScene-v0 config keys, e.g. "
-            "the policy's observation and action; default: PATH.env.json next to the zip"
+            "the policy's observation and action, applied over PATH.env.json (the sidecar next "
+            "to the zip) and --like"
         ),
     )
     _add_sim_flags(st)
@@ -59,12 +72,35 @@ def add_stress(sub) -> None:
         default=4,
         help="episodes advanced together (4; sb3 planners run one at a time)",
     )
+    st.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="processes to run batches in, one torch thread each (default 1); the results "
+        "are those of the serial run",
+    )
     add_model_flag(st)
-    add_json_flag(st, "print the summary as one JSON object")
+    add_json_flag(st, "print the summary as one JSON object (timings under 'timings')")
     st.add_argument(
         "--out",
-        help="write DIR/episodes.jsonl as episodes finish and DIR/metrics.json at the end; "
-        "rerun the same command to resume a stopped run",
+        help="write DIR/episodes.jsonl and DIR/metrics.json as episodes finish "
+        '(metrics.json says "complete": false until the last), DIR/timings.json and the '
+        "report (report.html, report.md, plots/, videos/, command.txt; docs/reports.md) at "
+        "the end",
+    )
+    st.add_argument(
+        "--videos",
+        type=int,
+        default=3,
+        metavar="K",
+        help="with --out: re-simulate the K worst episodes as videos for the report "
+        "(default 3; 0: none; needs the video extra)",
+    )
+    st.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run already in --out DIR (a stopped run, or a larger --episodes); "
+        "without it, a DIR that holds episodes is refused",
     )
     add_quiet_flag(st)
     st.set_defaults(func=_cmd_stress)
@@ -108,48 +144,155 @@ def _sim_config(args: argparse.Namespace):
 
 def _cmd_stress(args: argparse.Namespace) -> int:
     from counterscene_env.stress import (
-        SB3_PREFIX,
         EpisodeLog,
         StressConfig,
-        run_episodes,
         run_identity,
-        run_policy_episodes,
         summarize,
+        timings,
         write_summary,
+        write_timings,
     )
 
-    sim = _sim_config(args)
+    if args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    if args.videos < 0:
+        raise ValueError(f"--videos must be >= 0, got {args.videos}")
+    if args.resume and not args.out:
+        raise ValueError("--resume needs --out DIR: the directory of the run to continue")
     config = StressConfig(
         scenario=args.scenario,
         episodes=args.episodes,
         seed=args.seed,
         planner=args.planner,
-        sim=sim,
+        sim=_sim_config(args),
         batch=args.batch,
     )
-    # With --out, every finished episode is on disk at once, and a rerun resumes the run.
-    log = EpisodeLog(args.out, run_identity(config, args.model)) if args.out else None
-    if args.planner.startswith(SB3_PREFIX):
-        env_config = None
-        if args.env_config:
-            text = args.env_config
-            if not text.lstrip().startswith("{"):
-                text = Path(text).read_text()
-            env_config = json.loads(text)
-        records = run_policy_episodes(
-            config, args.model, env_config, progress=not args.quiet, log=log
-        )
-    else:
-        if args.env_config:
-            raise ValueError("--env-config applies to sb3:PATH.zip planners only")
-        model = load_model(args.model)
-        records = run_episodes(model, config, progress=not args.quiet, log=log)
+    env_config = _policy_env_config(args, config.is_sb3)
+    model = None if config.is_sb3 else load_model(args.model)  # a bad --model fails here
+    # Every check is done before the log: nothing is on disk until the first batch ends.
+    log = None
+    if args.out:
+        identity = run_identity(config, args.model, env_config)
+        n = config.episodes
+        log = EpisodeLog(args.out, identity, args.resume, lambda r: summarize(r[:n], config))
+    before = 0 if log is None else len(log.records[: config.episodes])
+    start = time.perf_counter()
+    try:
+        records = _run_stress(args, config, model, env_config, log)
+    except KeyboardInterrupt:
+        return _stress_stopped(args, config, log, time.perf_counter() - start, before)
     summary = summarize(records, config)
+    times = timings(records, time.perf_counter() - start, len(records) - before, args.workers)
     if args.out:
         write_summary(args.out, summary)
+        write_timings(args.out, times)
+        _write_report(args)
     if args.json:
-        print(json.dumps(json_safe(summary)))
+        print(json.dumps(json_safe({**summary, "timings": times})))
         return 0
+    _print_stress(args, config, summary, times)
+    return 0
+
+
+def _write_report(args: argparse.Namespace, videos: int | None = None) -> None:
+    """The run's report in --out (``counterscene_env.report.write_report``)."""
+    from counterscene_env.report import write_report
+
+    page = write_report(
+        args.out, videos=args.videos if videos is None else videos, progress=not args.quiet
+    )
+    if not args.json:
+        print(f"report: {page}", file=sys.stderr)
+
+
+def _policy_env_config(args: argparse.Namespace, sb3: bool) -> dict | None:
+    """The env-config keys ``--like`` and ``--env-config`` give an sb3 planner (None: none)."""
+    if not sb3:
+        for flag in ("like", "env_config"):
+            if getattr(args, flag):
+                raise ValueError(
+                    f"--{flag.replace('_', '-')} applies to sb3:PATH.zip planners only"
+                )
+        return None
+    out = {}
+    if args.like:
+        from counterscene_env.envs.like import config_like
+
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                out.update(config_like(args.like))
+        except ValueError as exc:
+            raise ValueError(f"--like: {exc}") from None
+        for w in caught:  # one line each, as the command's errors
+            print(f"counterscene stress: warning: --like: {w.message}", file=sys.stderr)
+    if args.env_config:
+        out.update(_read_env_config(args.env_config))
+    return out or None
+
+
+def _read_env_config(text: str) -> dict:
+    """``--env-config``: a JSON object, or the path of a ``.json`` file holding one."""
+    if not text.lstrip().startswith("{"):
+        path = Path(text)
+        if not path.is_file():
+            raise ValueError(f"--env-config: {text!r} is neither a JSON object nor a file")
+        text = path.read_text()
+    try:
+        given = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"--env-config: not valid JSON ({exc})") from None
+    if not isinstance(given, dict):
+        raise ValueError(f"--env-config must be a JSON object, got {given!r}")
+    return given
+
+
+def _run_stress(args: argparse.Namespace, config, model, env_config: dict | None, log):
+    """Every episode of the run: serial, or in ``--workers`` processes."""
+    from counterscene_env.stress import run_episodes, run_parallel, run_policy_episodes
+
+    progress = not args.quiet
+    if args.workers > 1:
+        return run_parallel(
+            config, args.workers, args.model, env_config, progress=progress, log=log
+        )
+    if config.is_sb3:
+        return run_policy_episodes(config, args.model, env_config, progress=progress, log=log)
+    return run_episodes(model, config, progress=progress, log=log)
+
+
+#: Exit code of a run stopped by Ctrl-C (the shell's 128 + SIGINT).
+STOPPED_EXIT_CODE = 130
+
+
+def _stress_stopped(args: argparse.Namespace, config, log, wall: float, before: int) -> int:
+    """Ctrl-C: the finished episodes' summary (``"complete": false``) and timings in --out,
+    and how to go on."""
+    from counterscene_env.stress import summarize, timings, write_summary, write_timings
+
+    records = [] if log is None else log.reload()[: config.episodes]
+    if log is None:
+        msg = "without --out the finished episodes are not kept; pass --out DIR to keep them"
+    elif not records:
+        msg = f"no episode had finished: nothing was written to {log.dir}"
+    else:
+        write_summary(log.dir, summarize(records, config))
+        write_timings(log.dir, timings(records, wall, len(records) - before, args.workers))
+        _write_report(args, videos=0)  # at once: the user is waiting; `report` adds videos
+        msg = (
+            f"{len(records)} of {config.episodes} episodes are in {log.dir} (metrics.json "
+            'summarises them with "complete": false); rerun the same command with --resume '
+            "to finish the run"
+            if len(records) < config.episodes
+            else f"every episode had finished: {log.dir}/metrics.json is complete"
+        )
+    print(f"counterscene stress: stopped. {msg}", file=sys.stderr)
+    return STOPPED_EXIT_CODE
+
+
+def _print_stress(args: argparse.Namespace, config, summary: dict, times: dict) -> None:
+    """The text report: the run, the paper's table row, the rates, the timing line."""
+    sim = config.sim
     print(
         f"{summary['episodes']} episodes of {args.scenario}, planner {args.planner}, selector "
         f"{sim.selector}, guidance {sim.guidance} (source {sim.selection_source}, "
@@ -172,10 +315,10 @@ def _cmd_stress(args: argparse.Namespace) -> int:
     if summary["scenes_too_short"]:
         print(f"{summary['scenes_too_short']} logs too short for an episode were skipped")
     print(
-        f"{fmt(summary['seconds_per_episode'])} s per episode, "
-        f"{fmt(summary['seconds_per_replan'])} s per replan"
+        f"{fmt(times['seconds_per_episode'])} s per episode, "
+        f"{fmt(times['seconds_per_replan'])} s per replan"
+        + (f" ({args.workers} workers)" if args.workers > 1 else "")
     )
-    return 0
 
 
 def add_bench_env(sub) -> None:

@@ -1,0 +1,165 @@
+"""A stress run directory, read back: what was run (``run.json``, ``metrics.json``) and its
+episode records (``episodes.jsonl``), as ``counterscene stress --out DIR`` writes them.
+
+Reading never changes the directory: a run killed mid-line keeps its cut last line on disk
+(the next ``stress`` rerun repairs it, ``stress.EpisodeLog``); here it is skipped.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+#: Record fields every report and comparison reads; a record without one is refused.
+REQUIRED_FIELDS = (
+    "episode",
+    "seed",
+    "scenario_id",
+    "per_second",
+    "cr",
+    "cr_ego_adversary",
+    "hbr_ego",
+    "orr",
+    "min_ttc",
+    "min_clearance_adversary",
+)
+
+
+@dataclass(frozen=True)
+class Run:
+    """One stress run on disk.
+
+    Attributes:
+        directory: the run directory.
+        identity: what the run is: ``run.json`` (``stress.run_identity``: the stress config
+            but its episode count, plus ``model``), else ``metrics.json``'s ``config``.
+        summary: ``metrics.json`` (``stress.summarize``; ``"complete": false`` while the
+            run is unfinished), None when there is none.
+        timings: ``timings.json`` (wall-clock figures, apart from the metrics), None when
+            there is none.
+        records: the finished episodes in order, one dict each (``stress._record``), with
+            JSON nulls read back as NaN, and ``min_ttc`` null as inf (no projected conflict).
+        cut_lines: lines of ``episodes.jsonl`` skipped as cut short by a kill (0 or 1).
+    """
+
+    directory: Path
+    identity: dict
+    summary: dict | None
+    timings: dict | None
+    records: list[dict]
+    cut_lines: int = 0
+
+    @property
+    def name(self) -> str:
+        """The directory's name (the run's label where nothing better distinguishes it)."""
+        return self.directory.resolve().name
+
+    @property
+    def planned_episodes(self) -> int | None:
+        """Episodes the run was started for (``metrics.json``), None when unknown."""
+        if self.summary is None:
+            return None
+        return self.summary.get(
+            "episodes_requested", self.summary.get("config", {}).get("episodes")
+        )
+
+    def sim(self) -> dict:
+        """The closed-loop settings of the run (``SimConfig`` fields as a dict)."""
+        return dict(self.identity.get("sim", {}))
+
+
+def load_run(directory: str | os.PathLike) -> Run:
+    """Read a stress run directory.
+
+    Raises:
+        FileNotFoundError: no such directory, or it has no ``episodes.jsonl``, or neither
+            ``run.json`` nor ``metrics.json`` (the message names the files).
+        ValueError: ``episodes.jsonl`` has no finished episode, a line that is not JSON
+            before the last, a record without a required field, or episodes out of order
+            (the message names the file, the line and the field).
+    """
+    root = Path(directory)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: no such run directory")
+    episodes = root / "episodes.jsonl"
+    if not episodes.is_file():
+        raise FileNotFoundError(
+            f"{episodes}: no episodes file; is {root} a `counterscene stress --out` directory?"
+        )
+    summary = _read_json(root / "metrics.json")
+    identity = _read_json(root / "run.json")
+    if identity is None:
+        if summary is None or "config" not in summary:
+            raise FileNotFoundError(
+                f"{root}: neither run.json nor metrics.json (with its 'config'): what was run "
+                "is unknown"
+            )
+        identity = {k: v for k, v in summary["config"].items() if k != "episodes"}
+    records, cut = _read_records(episodes)
+    return Run(root, identity, summary, _read_json(root / "timings.json"), records, cut)
+
+
+def _read_json(path: Path) -> dict | None:
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not JSON ({exc})") from None
+
+
+def _read_records(path: Path) -> tuple[list[dict], int]:
+    """The records of ``episodes.jsonl`` and the number of cut lines skipped (a kill
+    mid-write cuts at most the last line)."""
+    lines = path.read_text().splitlines()
+    records, cut = [], 0
+    for n, line in enumerate(lines, start=1):
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            if n != len(lines):
+                raise ValueError(f"{path}: line {n} is not JSON") from None
+            cut = 1
+            continue
+        missing = [k for k in REQUIRED_FIELDS if k not in rec]
+        if missing:
+            raise ValueError(f"{path}: line {n} has no field {', '.join(map(repr, missing))}")
+        if rec["episode"] != len(records):
+            raise ValueError(
+                f"{path}: line {n} is episode {rec['episode']!r}, expected {len(records)}"
+            )
+        records.append(record_values(rec))
+    if not records:
+        raise ValueError(f"{path}: no finished episode")
+    return records, cut
+
+
+def record_values(record: dict) -> dict:
+    """A record as written (JSON nulls for NaN and inf) back to its values: a null
+    ``min_ttc`` is inf (no projected conflict), any other null number NaN. The same rule as
+    ``stress.EpisodeLog`` reading its own log."""
+    out = dict(record)
+    for key, value in record.items():
+        if value is None and key not in _NULLABLE:
+            out[key] = math.inf if key == "min_ttc" else math.nan
+    out["per_second"] = {
+        h: {k: math.nan if v is None else float(v) for k, v in row.items()}
+        for h, row in record["per_second"].items()
+    }
+    return out
+
+
+#: Record fields whose null means "none" rather than a number (ids, names, reasons).
+_NULLABLE = frozenset(
+    {
+        "adversary_id",
+        "scene_seed",
+        "adversary_type",
+        "adversary_tier",
+        "danger_score",
+        "fallback",
+    }
+)

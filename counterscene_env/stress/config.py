@@ -1,0 +1,84 @@
+"""What a stress run is: :class:`StressConfig`, and its identity on disk (:func:`run_identity`)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+from counterscene_env.planners import make_planner
+from counterscene_env.scene.sources import check_spec
+from counterscene_env.sim import SimConfig
+
+#: Prefix of a Stable-Baselines3 policy in ``--planner`` (``sb3:PATH.zip``).
+SB3_PREFIX = "sb3:"
+
+
+@dataclass(frozen=True)
+class StressConfig:
+    """One stress run.
+
+    Attributes:
+        scenario: ``highway``, ``merge``, ``intersection``, ``roundabout``,
+            ``scenarionet:DIR``, or a dataset directory (``counterscene generate --out``).
+        episodes: number of episodes.
+        seed: seed of episode 0 (episode i: ``seed + i``).
+        planner: ego planner name (``idm``, ``idm_yield``, ``constant_velocity``, ``log``),
+            or ``sb3:PATH.zip``: a Stable-Baselines3 policy, run through ``CounterScene-v0``
+            (:func:`~counterscene_env.stress.run_policy_episodes`).
+        sim: closed-loop settings (selector, guidance, samples, ...).
+        batch: episodes advanced together (one world-model call per replan); sb3 planners
+            run one episode at a time whatever it says.
+    """
+
+    scenario: str
+    episodes: int = 50
+    seed: int = 0
+    planner: str = "idm"
+    sim: SimConfig = dataclasses.field(default_factory=SimConfig)
+    batch: int = 4
+
+    def __post_init__(self) -> None:
+        if self.episodes < 1:
+            raise ValueError(f"episodes must be >= 1, got {self.episodes}")
+        if self.batch < 1:
+            raise ValueError(f"batch must be >= 1, got {self.batch}")
+        check_spec(self.scenario)
+        if self.is_sb3:
+            path = self.policy_path
+            if not path.is_file():
+                raise ValueError(f"planner {self.planner!r}: no such SB3 policy file {path}")
+        else:
+            make_planner(self.planner)  # raises on an unknown name
+
+    @property
+    def is_sb3(self) -> bool:
+        """The planner is a Stable-Baselines3 policy (``sb3:PATH.zip``)."""
+        return self.planner.startswith(SB3_PREFIX)
+
+    @property
+    def policy_path(self) -> Path:
+        """The ``.zip`` of an ``sb3:PATH.zip`` planner."""
+        return Path(self.planner.removeprefix(SB3_PREFIX))
+
+    @property
+    def episodes_per_call(self) -> int:
+        """Episodes run together: ``batch``, or 1 for an sb3 policy (one env, one episode)."""
+        return 1 if self.is_sb3 else self.batch
+
+    def to_dict(self) -> dict:
+        out = dataclasses.asdict(self)
+        out["sim"] = dataclasses.asdict(self.sim)
+        return out
+
+
+def run_identity(config: StressConfig, model: str, env_config: dict | None = None) -> dict:
+    """What a stress run is, for :class:`~counterscene_env.stress.EpisodeLog`: its config but
+    the episode count, its model, and (sb3 planners) the env-config keys given on top of the
+    policy's sidecar (``--like``, ``--env-config``), which change what the policy sees."""
+    out = config.to_dict()
+    out.pop("episodes")
+    out["model"] = model
+    if env_config:
+        out["env_config"] = env_config
+    return out

@@ -1,0 +1,293 @@
+"""Running a stress run's episodes in this process: whole batches (:func:`chunks`), each run
+by a runner (:class:`BatchRunner` for the reference planners, :class:`PolicyRunner` for an
+sb3 policy), recorded in episode order (:class:`Progress`).
+
+The parallel run (``stress.workers``) hands the same batches to the same runners in other
+processes, so its records are those of the serial run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import time
+from collections.abc import Callable, Iterator, Sequence
+
+import numpy as np
+
+from counterscene_env import metrics
+from counterscene_env.config import Scenario
+from counterscene_env.planners import Planner, make_planner
+from counterscene_env.scene.core import Scene
+from counterscene_env.scene.sources import scenes_for
+from counterscene_env.sim import ClosedLoop
+from counterscene_env.stress.config import StressConfig
+from counterscene_env.stress.log import EpisodeLog
+from counterscene_env.world_model.model import WorldModel
+
+
+def _remaining_scenes(config: StressConfig, done: Sequence[dict]) -> Iterator[Scene]:
+    """The scenes of episodes ``len(done)`` on: a generated road restarts from the seed after
+    the last done scene's (no scene is generated twice), a stored source skips ahead."""
+    k = len(done)
+    if config.scenario in Scenario.values() and k:
+        return scenes_for(config.scenario, config.episodes - k, done[-1]["scene_seed"] + 1)
+    return itertools.islice(scenes_for(config.scenario, config.episodes, config.seed), k, None)
+
+
+def first_to_run(config: StressConfig, done: Sequence[dict]) -> int:
+    """The first episode of the first batch :func:`chunks` runs after the ``done`` ones:
+    the start of the batch ``len(done)`` falls in, or ``config.episodes`` when all are done."""
+    if len(done) >= config.episodes:
+        return config.episodes
+    return len(done) - len(done) % config.episodes_per_call
+
+
+def chunks(config: StressConfig, done: Sequence[dict]) -> Iterator[tuple[int, list[Scene]]]:
+    """The batches still to run after the ``done`` episodes, in order: ``(first episode
+    index, its scenes)``, each of ``config.episodes_per_call`` episodes (the last may be
+    shorter). Batch boundaries fall at the same episodes in every run of a config, so a batch
+    cut short by a kill (some of its episodes recorded) is run again whole: the episodes still
+    missing then come from a batch of the uninterrupted run's composition (the recorded ones
+    are kept, :class:`Progress`). Never more scenes are drawn than the batches need."""
+    index = first_to_run(config, done)
+    size = config.episodes_per_call
+    scenes = _remaining_scenes(config, done[:index])
+    while index < config.episodes:
+        chunk = list(itertools.islice(scenes, min(size, config.episodes - index)))
+        if not chunk:
+            return
+        yield index, chunk
+        index += len(chunk)
+
+
+class Progress:
+    """The finished episodes of a run: appended to its log in episode order, counted on a
+    progress bar (with ETA) and in the running collision rate.
+
+    Args:
+        config: the run.
+        log: its :class:`EpisodeLog` (its records of episodes ``< config.episodes`` count as
+            done), or None.
+        progress: show the bar.
+    """
+
+    def __init__(self, config: StressConfig, log: EpisodeLog | None, progress: bool) -> None:
+        from tqdm.auto import tqdm
+
+        self.log = log
+        self.records: list[dict] = [] if log is None else log.records[: config.episodes]
+        self.bar = tqdm(
+            total=config.episodes,
+            initial=len(self.records),  # the ETA counts only this invocation's episodes
+            desc="stress",
+            unit="ep",
+            disable=not progress,
+            dynamic_ncols=True,
+        )
+
+    def add(self, batch: list[dict]) -> None:
+        """A finished batch, the next episodes in order (those already recorded, of a batch
+        that a kill cut short and :func:`chunks` ran again, are left as recorded)."""
+        batch = [r for r in batch if r["episode"] >= len(self.records)]
+        if not batch:
+            return
+        if batch[0]["episode"] != len(self.records):
+            raise RuntimeError(
+                f"stress: episode {batch[0]['episode']} finished before episode "
+                f"{len(self.records)} was recorded"
+            )
+        if self.log is not None:
+            self.log.append(batch)
+        self.records += batch
+        self.bar.update(len(batch))
+        self.bar.set_postfix(cr=f"{np.mean([r['cr'] for r in self.records]):.2f}")
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+class BatchRunner:
+    """Runs batches of episodes of a reference (or custom) planner in one closed loop:
+    ``runner(first, scenes)`` runs episodes ``first ..`` with seeds ``config.seed + first ..``.
+
+    Args:
+        model: the world model.
+        config: the run.
+        planner_factory: a fresh planner per episode; default ``make_planner(config.planner)``.
+    """
+
+    def __init__(
+        self,
+        model: WorldModel,
+        config: StressConfig,
+        planner_factory: Callable[[], Planner] | None = None,
+    ) -> None:
+        self.config = config
+        self.factory = planner_factory or (lambda: make_planner(config.planner))
+        self.loop = ClosedLoop(model, config.sim)
+
+    def __call__(self, first: int, scenes: Sequence[Scene]) -> list[dict]:
+        seeds = [self.config.seed + first + k for k in range(len(scenes))]
+        planners = [self.factory() for _ in scenes]
+        return run_batch(self.loop, scenes, seeds, planners, first=first)
+
+    def close(self) -> None:
+        pass
+
+
+class PolicyRunner:
+    """Runs episodes of an ``sb3:PATH.zip`` planner through ``CounterScene-v0``, one at a time
+    (see :func:`run_policy_episodes`); ``runner(first, scenes)`` as :class:`BatchRunner`.
+
+    Raises:
+        ValueError: the policy's spaces do not match the env's (the message names both).
+    """
+
+    def __init__(
+        self, config: StressConfig, model: str = "default", env_config: dict | None = None
+    ) -> None:
+        from counterscene_env.envs.single_agent import CounterSceneEnv
+        from counterscene_env.planners import SB3Policy
+
+        self.config = config
+        self.policy = SB3Policy(config.policy_path)
+        settings = {
+            **self.policy.env_config,
+            **(env_config or {}),
+            "scenario": config.scenario if config.scenario in Scenario.values() else "merge",
+            "model": model,
+            **dataclasses.asdict(config.sim),  # every closed-loop setting
+            "terminate_on_collision": False,
+            "terminate_on_off_road": False,
+        }
+        self.env = CounterSceneEnv(config=settings)
+        self.policy.bind(self.env.observation_space, self.env.action_space)
+
+    def __call__(self, first: int, scenes: Sequence[Scene]) -> list[dict]:
+        return [self._episode(first + k, scene) for k, scene in enumerate(scenes)]
+
+    def _episode(self, index: int, scene: Scene) -> dict:
+        seed = self.config.seed + index
+        start = time.perf_counter()
+        obs, _ = self.env.reset(seed=seed, options={"scene": scene, "episode_seed": seed})
+        done = False
+        while not done:
+            obs, _, terminated, truncated, _ = self.env.step(self.policy.predict(obs))
+            done = terminated or truncated
+        return _record(self.env.loop, 0, scene, seed, time.perf_counter() - start, index)
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def drive(
+    runner: Callable[[int, list[Scene]], list[dict]],
+    config: StressConfig,
+    progress: bool = True,
+    log: EpisodeLog | None = None,
+) -> list[dict]:
+    """Every batch still to run (:func:`chunks`), one after the other, through ``runner``;
+    the records of all episodes of the run, in order."""
+    tally = Progress(config, log, progress)
+    try:
+        for first, scenes in chunks(config, tally.records):
+            tally.add(runner(first, scenes))
+    finally:
+        tally.close()
+    return tally.records
+
+
+def run_episodes(
+    model: WorldModel,
+    config: StressConfig,
+    planner_factory: Callable[[], Planner] | None = None,
+    progress: bool = True,
+    log: EpisodeLog | None = None,
+) -> list[dict]:
+    """Run every episode; one record per episode (:func:`metrics.evaluate_scene` plus the
+    episode index, selection, seeds and timing). With a ``log``, episodes it holds are not
+    run again and each finished batch is appended to it."""
+    return drive(BatchRunner(model, config, planner_factory), config, progress, log)
+
+
+def run_batch(
+    loop: ClosedLoop,
+    scenes: Sequence[Scene],
+    seeds: Sequence[int],
+    planners: Sequence[Planner],
+    first: int = 0,
+) -> list[dict]:
+    """Run B episodes together to their end (episode indices ``first ..``); one record each."""
+    start = time.perf_counter()
+    loop.reset(scenes, seeds)
+    for planner, scene, seed in zip(planners, scenes, seeds, strict=True):
+        planner.reset(scene, seed)
+    B = len(scenes)
+    while not loop.done.all():
+        actions = np.zeros((B, 2))
+        states = np.full((B, 4), np.nan)
+        for b, planner in enumerate(planners):
+            if loop.episodes[b].done:
+                continue
+            state = loop.state(b)
+            if planner.replays_log:
+                states[b] = planner.next_state(state)
+            else:
+                actions[b] = planner.act(state)
+        loop.step(actions, states)
+    wall = time.perf_counter() - start
+    return [
+        _record(loop, b, scene, seeds[b], wall / B, first + b) for b, scene in enumerate(scenes)
+    ]
+
+
+def _record(loop: ClosedLoop, b: int, scene: Scene, seed: int, seconds: float, index: int) -> dict:
+    """Episode ``index``'s record: its metrics (:func:`metrics.evaluate_scene` of batch row
+    ``b``), selection, seeds and timing [s]."""
+    ep = loop.episodes[b]
+    sim = loop.scene(b)
+    factual = scene.time_slice(0, sim.num_steps)
+    rec = metrics.evaluate_scene(sim, factual, adversary=ep.adversary)
+    conflict = ep.conflict
+    scene_seed = scene.metadata.get("seed")
+    rec.update(
+        episode=int(index),
+        seed=int(seed),
+        scene_seed=None if scene_seed is None else int(scene_seed),
+        adversary_type=None if conflict is None else conflict.subtype,
+        adversary_tier=None if conflict is None else conflict.tier,
+        danger_score=None if conflict is None else float(conflict.score),
+        fallback=ep.selection.fallback,
+        replans=ep.replans,
+        replan_seconds=ep.replan_seconds,
+        seconds=seconds,
+    )
+    return rec
+
+
+def run_policy_episodes(
+    config: StressConfig,
+    model: str = "default",
+    env_config: dict | None = None,
+    progress: bool = True,
+    log: EpisodeLog | None = None,
+) -> list[dict]:
+    """Run every episode of an ``sb3:PATH.zip`` planner through ``CounterScene-v0`` (a
+    ``log`` as in :func:`run_episodes`).
+
+    The policy sees the env's highway-env observations and acts through its action type.
+    Episode i runs the same scene and closed-loop seed as :func:`run_episodes` would
+    (``reset(options={"scene": ..., "episode_seed": seed + i})``) and runs to its end, as the
+    other planners' do (collisions and leaving the road do not end it). The env's
+    observation and action config come from ``env_config``, else from the policy's
+    ``PATH.env.json`` sidecar, else the env's defaults.
+
+    Raises:
+        ValueError: the policy's spaces do not match the env's (the message names both).
+    """
+    runner = PolicyRunner(config, model, env_config)
+    try:
+        return drive(runner, config, progress, log)
+    finally:
+        runner.close()

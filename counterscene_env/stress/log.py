@@ -1,0 +1,174 @@
+"""A stress run's files: ``DIR/episodes.jsonl`` (:class:`EpisodeLog`), ``DIR/run.json``,
+``DIR/metrics.json`` and ``DIR/timings.json``."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from counterscene_env import metrics
+
+
+class EpisodeLog:
+    """A stress run's durable record: ``DIR/episodes.jsonl``, one line per finished episode.
+
+    Each batch's records are appended, flushed and synced to disk as the batch finishes, so a
+    killed run (Ctrl-C, a crash, a lost machine) loses only the episodes in flight. With
+    ``resume``, the run continues after the last recorded episode; a larger ``--episodes``
+    extends it. ``DIR/run.json`` holds what the run is (the config but its episode count, and
+    the model): a run with anything else is refused, so one directory never mixes two runs.
+    With ``summarize``, ``DIR/metrics.json`` is rewritten after each append with
+    ``summarize(records so far)``, so even a killed run leaves a readable summary.
+
+    Nothing is written before the first :meth:`append`: a run refused or stopped before its
+    first batch finished leaves the directory as it was.
+
+    Args:
+        directory: the run's output directory (created at the first append).
+        identity: what the run is, as plain JSON values.
+        resume: continue the episodes already in ``directory``; without it, a directory that
+            holds any is refused.
+        summarize: finished records -> the summary for ``metrics.json``.
+
+    Raises:
+        ValueError: ``directory`` is a file, holds another run (the message names the
+            differing keys), or holds episodes and ``resume`` is false.
+    """
+
+    def __init__(
+        self,
+        directory: str | os.PathLike,
+        identity: dict,
+        resume: bool = False,
+        summarize: Callable[[list[dict]], dict] | None = None,
+    ) -> None:
+        self.dir = Path(directory)
+        if self.dir.exists() and not self.dir.is_dir():
+            raise ValueError(f"--out {self.dir} is a file, not a directory")
+        self.path = self.dir / "episodes.jsonl"
+        self.identity = json.loads(json.dumps(metrics.json_safe(identity)))
+        self.summarize = summarize
+        run = self.dir / "run.json"
+        if run.is_file():
+            have = json.loads(run.read_text())
+            if have != self.identity:
+                keys = sorted(
+                    k for k in set(have) | set(self.identity) if have.get(k) != self.identity.get(k)
+                )
+                raise ValueError(
+                    f"{self.dir} holds a stress run with other settings ({', '.join(keys)}): "
+                    "use another --out, or delete it to start over"
+                )
+        self._kept: list[str] | None = None  # set when the file's last line was cut short
+        self.records = self._read()
+        if self.records and not resume:
+            n = len(self.records)
+            raise ValueError(
+                f"{self.dir} already holds {n} finished episode{'s' * (n != 1)} of this run: "
+                "pass --resume to continue it, or pick another --out"
+            )
+
+    def _read(self) -> list[dict]:
+        """The finished episodes on disk, in order; a last line cut short by a kill is
+        dropped (and removed from the file at the next append)."""
+        if not self.path.is_file():
+            return []
+        text = self.path.read_text()
+        lines = text.splitlines()
+        records = []
+        for n, line in enumerate(lines):
+            try:
+                records.append(json.loads(line))
+            except json.JSONDecodeError:
+                if n != len(lines) - 1:
+                    raise ValueError(f"{self.path}: line {n + 1} is not JSON") from None
+        if text and (len(records) < len(lines) or not text.endswith("\n")):
+            # A kill mid-line: keep the whole records, each ended, so appends start afresh.
+            self._kept = lines[: len(records)]
+        for i, rec in enumerate(records):
+            if rec.get("episode") != i:
+                raise ValueError(f"{self.path}: line {i + 1} is not episode {i}")
+        return [_from_json(rec) for rec in records]
+
+    def append(self, records: Sequence[dict]) -> None:
+        """Add finished episodes, on disk before this returns (and ``metrics.json``, with
+        ``summarize``)."""
+        self.dir.mkdir(parents=True, exist_ok=True)
+        run = self.dir / "run.json"
+        if not run.is_file():
+            _write_atomic(run, json.dumps(self.identity, indent=2) + "\n")
+        if self._kept is not None:
+            self.path.write_text("".join(f"{x}\n" for x in self._kept))
+            self._kept = None
+        # One write call: Ctrl-C (raised between Python statements) never splits a batch.
+        text = "".join(json.dumps(metrics.json_safe(rec)) + "\n" for rec in records)
+        with open(self.path, "a") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        self.records += list(records)
+        if self.summarize is not None:
+            write_summary(self.dir, self.summarize(self.records))
+
+    def reload(self) -> list[dict]:
+        """The finished episodes as the file holds them, now. After a Ctrl-C, which can
+        strike between an append's write and its bookkeeping, the file is the truth."""
+        self.records = self._read()
+        return self.records
+
+
+def _from_json(record: dict) -> dict:
+    """A record as written (``metrics.json_safe``: NaN and inf as null) back to its values:
+    a null ``min_ttc`` is inf (no projected conflict), any other null metric NaN."""
+    out = dict(record)
+    for key in metrics.SCENE_KEYS:
+        if out.get(key, 0) is None:
+            out[key] = math.inf if key == "min_ttc" else math.nan
+    out["per_second"] = {
+        h: {k: math.nan if v is None else v for k, v in row.items()}
+        for h, row in record.get("per_second", {}).items()
+    }
+    return out
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    """``path`` holds ``text`` or its previous content, never half of it (a kill mid-write)."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _write_json(path: Path, obj: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _write_atomic(path, json.dumps(metrics.json_safe(obj), indent=2) + "\n")
+
+
+def write_summary(directory: str | os.PathLike, summary: dict) -> None:
+    """``DIR/metrics.json``: the summary of a run (written whole or not at all)."""
+    _write_json(Path(directory) / "metrics.json", summary)
+
+
+def write_timings(directory: str | os.PathLike, timings: dict) -> None:
+    """``DIR/timings.json``: the run's wall-clock figures (kept apart from ``metrics.json``,
+    which two runs of the same episodes give identically)."""
+    _write_json(Path(directory) / "timings.json", timings)
+
+
+def write_outputs(
+    directory: str | os.PathLike,
+    summary: dict,
+    records: Sequence[dict],
+    timings: dict | None = None,
+) -> None:
+    """``DIR/metrics.json`` (the summary), ``DIR/episodes.jsonl`` (one line per episode,
+    rewritten whole) and, if given, ``DIR/timings.json``: a run kept in memory, not through
+    an :class:`EpisodeLog`."""
+    write_summary(directory, summary)
+    with open(Path(directory) / "episodes.jsonl", "w") as f:
+        for rec in records:
+            f.write(json.dumps(metrics.json_safe(rec)) + "\n")
+    if timings is not None:
+        write_timings(directory, timings)

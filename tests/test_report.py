@@ -1,0 +1,359 @@
+"""Stress reports and comparisons: the files a user opens, the order of the worst episodes,
+the intervals and paired tests, the rerun command, videos, and refusals of bad input."""
+
+from __future__ import annotations
+
+import copy
+import json
+import re
+import shlex
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import crash_scene
+
+from counterscene_env import metrics
+from counterscene_env.cli import _parser, main
+from counterscene_env.config import parsed_fields
+from counterscene_env.report import compare_runs, load_run, write_report
+from counterscene_env.report.compare import to_json
+from counterscene_env.report.ranking import worst_episodes
+from counterscene_env.report.stats import mcnemar_exact
+from counterscene_env.report.tables import horizon_table
+from counterscene_env.sim import SimConfig
+from counterscene_env.stress import EpisodeLog, StressConfig, run_identity, summarize
+
+# ---------------------------------------------------------------------- synthetic runs
+
+
+@pytest.fixture(scope="module")
+def template() -> dict:
+    """One real episode record (metrics of a scene with a collision), to vary."""
+    scene = crash_scene()
+    rec = metrics.evaluate_scene(scene, scene, adversary=1)
+    rec.update(
+        adversary_type="following",
+        adversary_tier=1,
+        danger_score=1.0,
+        fallback=None,
+        replans=4,
+        replan_seconds=0.4,
+        seconds=1.0,
+    )
+    return rec
+
+
+def episode(template: dict, i: int, **values) -> dict:
+    """Episode i of a synthetic run (seed 100 + i, scene 1000 + i); ``values`` override
+    fields; ``cr`` and ``ade`` also set the per-second CR and ADE."""
+    rec = copy.deepcopy(template)
+    rec.update(
+        episode=i, seed=100 + i, scene_seed=1000 + i, scenario_id=f"intersection/seed={1000 + i}"
+    )
+    ade = values.pop("ade", None)
+    for row in rec["per_second"].values():
+        row["CR"] = values.get("cr", rec["cr"])
+        if ade is not None:
+            row["ADE"] = ade
+    rec.update(values)
+    return rec
+
+
+def write_run(
+    directory: Path, records: list[dict], planner: str = "idm", guidance: str = "full"
+) -> Path:
+    """A run directory written by the stress writers themselves (run.json,
+    episodes.jsonl, metrics.json)."""
+    config = StressConfig(
+        "intersection",
+        episodes=len(records),
+        seed=100,
+        planner=planner,
+        sim=SimConfig(guidance=guidance),
+        batch=2,
+    )
+    log = EpisodeLog(
+        directory, run_identity(config, "default"), summarize=lambda r: summarize(r, config)
+    )
+    log.append(records)
+    return directory
+
+
+def mixed(template: dict) -> list[dict]:
+    """Eight episodes of known severity (see test_worst_episodes_are_ranked_by_severity)."""
+    return [
+        episode(template, 0, cr=0.0, cr_ego_adversary=0.0, min_ttc=2.0, min_clearance_adversary=3.0),
+        episode(template, 1, cr=1.0, cr_ego_adversary=0.0, min_ttc=0.0, min_clearance_adversary=4.0),
+        episode(template, 2, cr=0.0, cr_ego_adversary=0.0, min_ttc=float("inf"), min_clearance_adversary=9.0),
+        episode(template, 3, cr=1.0, cr_ego_adversary=1.0, min_ttc=0.0, min_clearance_adversary=0.0),
+        episode(template, 4, cr=0.0, cr_ego_adversary=0.0, min_ttc=0.5, min_clearance_adversary=1.0),
+        episode(template, 5, cr=0.0, cr_ego_adversary=0.0, min_ttc=0.5, min_clearance_adversary=0.2),
+        episode(
+            template, 6, cr=0.0, cr_ego_adversary=float("nan"), min_ttc=1.0,
+            min_clearance_adversary=float("nan"), adversary_id=None, adversary_type=None,
+            fallback="no candidate",
+        ),
+        episode(template, 7, cr=0.0, cr_ego_adversary=0.0, min_ttc=2.0, min_clearance_adversary=3.0),
+    ]  # fmt: skip
+
+
+# ---------------------------------------------------------------------- the report
+
+
+def test_report_files_and_a_self_contained_page(template, tmp_path):
+    run = write_run(tmp_path / "run", mixed(template))
+    page = write_report(run, videos=0, progress=False)
+    assert page == run / "report.html"
+    for name in ("report.md", "command.txt"):
+        assert (run / name).is_file()
+    for png in (
+        "cr_hbr_by_second",
+        "ade_fde_by_second",
+        "hist_min_ttc",
+        "hist_min_clearance",
+        "hist_ego_deceleration",
+    ):
+        assert (run / "plots" / f"{png}.png").stat().st_size > 1000
+    text = page.read_text()
+    # Opens offline: no remote address, no script, every image inline.
+    assert not re.search(r"https?://|//cdn|<script|<link", text, re.IGNORECASE)
+    images = re.findall(r'<img src="([^"]*)"', text)
+    assert len(images) == 5 and all(s.startswith("data:image/png;base64,") for s in images)
+    md = (run / "report.md").read_text()
+    assert "| horizon | ADE [m] | FDE [m] | ORR [%] | HBR [%] | CR [%] |" in md
+    for group in ("1-4s", "5-7s", "8-10s"):
+        assert f"| {group} |" in md
+    assert "Wilson" in md and "bootstrap" in md
+    assert "No videos were asked for" in md
+
+
+def test_records_without_a_plotted_field_get_a_report_that_names_it(template, tmp_path):
+    older = [{k: v for k, v in r.items() if k != "ego_peak_deceleration"} for r in mixed(template)]
+    run = write_run(tmp_path / "run", older)
+    write_report(run, videos=0, progress=False)
+    assert not (run / "plots" / "hist_ego_deceleration.png").exists()
+    assert "'ego_peak_deceleration'" in (run / "report.md").read_text()
+
+
+def test_the_table_matches_metrics_json_and_rates_carry_wilson_intervals(template, tmp_path):
+    run = load_run(write_run(tmp_path / "run", mixed(template)))
+    table = horizon_table(run.records)
+    for group, row in run.summary["horizons"].items():
+        for key, value in row.items():
+            est = table[group][key]
+            if value is None:  # NaN in JSON: nothing measured (FDE past a 3.9 s rollout)
+                assert np.isnan(est.value)
+                continue
+            assert est.value == pytest.approx(value)
+            assert est.low <= est.value <= est.high
+    md = write_report(run.directory, videos=0, progress=False).with_name("report.md").read_text()
+    lo, hi = metrics.wilson_interval(2, 8)  # 2 collisions in 8 episodes
+    assert f"| 25 [{100 * lo:.3g}, {100 * hi:.3g}] | 8 |" in md
+
+
+def test_worst_episodes_are_ranked_by_severity(template, tmp_path):
+    records = mixed(template)
+    # Collision with the adversary, other collision, then by min TTC, then by clearance to
+    # the adversary (the 0.2 m near miss before the 1 m one), no adversary after a
+    # clearance, no projected conflict last.
+    order = [3, 1, 5, 4, 6, 0, 7, 2]
+    assert [r["episode"] for r in worst_episodes(records)] == order
+    assert [r["episode"] for r in worst_episodes(records, 3)] == order[:3]
+    run = write_run(tmp_path / "run", records)
+    md = (write_report(run, videos=0, progress=False)).with_name("report.md").read_text()
+    section = md[md.index("## Worst episodes") :]
+    ranked = [int(m) for m in re.findall(r"^\| \d+ \| (\d+) \|", section, re.MULTILINE)]
+    assert ranked == order
+    assert "collision with the adversary" in section
+
+
+def test_command_txt_reruns_the_same_run(template, tmp_path):
+    run = write_run(tmp_path / "run", mixed(template), guidance="no_jerk")
+    write_report(run, videos=0, progress=False)
+    line = (run / "command.txt").read_text().splitlines()[-1]
+    argv = shlex.split(line)
+    assert argv[:2] == ["counterscene", "stress"]
+    args = _parser().parse_args(argv[1:])
+    ident = json.loads((run / "run.json").read_text())
+    assert (args.scenario, args.seed, args.planner, args.batch, args.model) == (
+        ident["scenario"], ident["seed"], ident["planner"], ident["batch"], ident["model"]
+    )  # fmt: skip
+    assert args.episodes == 8 and args.out == str(run) and args.resume
+    assert asdict(SimConfig(**parsed_fields(args, SimConfig))) == ident["sim"]
+
+
+def test_a_stopped_run_gets_a_report_of_its_finished_episodes(template, tmp_path):
+    run = write_run(tmp_path / "run", mixed(template)[:4])
+    with open(run / "episodes.jsonl", "a") as f:
+        f.write('{"scenario_id": "intersection/seed=1004", "rollout')  # killed mid-line
+    summary = json.loads((run / "metrics.json").read_text())
+    summary.update(complete=False, episodes_requested=8)
+    (run / "metrics.json").write_text(json.dumps(summary))
+    md = write_report(run, videos=0, progress=False).with_name("report.md").read_text()
+    assert "unfinished: 4 of 8 episodes" in md
+    assert "cut short by a kill" in md
+    assert (run / "episodes.jsonl").read_text().endswith("rollout")  # the reader wrote nothing
+
+
+def test_without_imageio_the_report_says_how_to_get_videos(template, tmp_path, monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "imageio" else real(name, *a)
+    )
+    run = write_run(tmp_path / "run", mixed(template))
+    md = write_report(run, videos=2, progress=False).with_name("report.md").read_text()
+    assert 'pip install "counterscene-env[video]"' in md
+    assert not (run / "videos").exists()
+
+
+def test_sb3_runs_are_reported_without_videos(template, tmp_path):
+    policy = tmp_path / "policy.zip"
+    policy.write_bytes(b"not read")
+    run = write_run(tmp_path / "run", mixed(template), planner=f"sb3:{policy}")
+    md = write_report(run, videos=2, progress=False).with_name("report.md").read_text()
+    assert "not re-simulated for videos" in md
+
+
+# ---------------------------------------------------------------------- compare
+
+
+def paired_runs(template, tmp_path, flips_up: int, flips_down: int, ade_shift: float):
+    """Two runs of the same 40 episodes: B flips ``flips_up`` of A's safe episodes to a
+    collision and ``flips_down`` of its collisions to safe, and shifts ADE."""
+    rng = np.random.default_rng(0)
+    crash = np.zeros(40)
+    crash[:10] = 1.0
+    ade_a = rng.uniform(0.5, 1.5, 40)
+    b_crash = crash.copy()
+    b_crash[10 : 10 + flips_up] = 1.0
+    b_crash[:flips_down] = 0.0
+    ade_b = ade_a + ade_shift + rng.normal(0, 0.05, 40)
+    a = [episode(template, i, cr=crash[i], ade=ade_a[i]) for i in range(40)]
+    b = [episode(template, i, cr=b_crash[i], ade=ade_b[i]) for i in range(40)]
+    return (
+        write_run(tmp_path / "a", a, guidance="none"),
+        write_run(tmp_path / "b", b, guidance="full"),
+    )
+
+
+def test_compare_finds_a_real_difference(template, tmp_path):
+    a, b = paired_runs(template, tmp_path, flips_up=15, flips_down=0, ade_shift=0.5)
+    c = compare_runs([a, b])
+    assert c.labels == ["a (guidance=none)", "b (guidance=full)"]
+    (p,) = c.paired
+    assert p.shared == 40
+    cr = p.metrics["cr"]
+    assert cr.difference == pytest.approx(15 / 40)
+    assert (cr.a_only, cr.b_only) == (0, 15) and cr.p_value == pytest.approx(2 * 0.5**15)
+    assert cr.significant and p.metrics["ade"].significant
+    assert p.metrics["ade"].low > 0.4
+    out = to_json(c)["paired"][0]["metrics"]
+    assert out["cr"]["verdict"].startswith("higher than a (guidance=none), outside the noise")
+
+
+def test_compare_calls_a_null_difference_noise(template, tmp_path):
+    a, b = paired_runs(template, tmp_path, flips_up=2, flips_down=2, ade_shift=0.0)
+    c = compare_runs([a, b])
+    (p,) = c.paired
+    assert p.metrics["cr"].difference == 0.0 and p.metrics["cr"].p_value == 1.0
+    assert not p.metrics["cr"].significant and not p.metrics["ade"].significant
+    assert p.metrics["ade"].low < 0 < p.metrics["ade"].high
+    verdicts = to_json(c)["paired"][0]["metrics"]
+    assert all(v["verdict"].startswith("inside the noise") for v in verdicts.values())
+
+
+def test_mcnemar_exact():
+    assert mcnemar_exact(0, 0) == 1.0
+    assert mcnemar_exact(3, 3) == 1.0
+    assert mcnemar_exact(0, 6) == pytest.approx(2 / 64)
+    assert mcnemar_exact(1, 9) == mcnemar_exact(9, 1) == pytest.approx(2 * 11 / 1024)
+
+
+def test_compare_cli_table_json_and_plots(template, tmp_path, capsys):
+    a, b = paired_runs(template, tmp_path, flips_up=15, flips_down=0, ade_shift=0.5)
+    assert main(["compare", str(a), str(b), "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert [r["label"] for r in result["runs"]] == ["a (guidance=none)", "b (guidance=full)"]
+    assert set(result["metrics"]) == {"cr", "cr_ego_adversary", "hbr_ego", "orr", "ade"}
+    out = tmp_path / "cmp"
+    assert main(["compare", str(a), str(b), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "| episode CR (ego collides) | % |" in text and "outside the noise" in text
+    for key in result["metrics"]:
+        assert (out / "plots" / f"compare_{key}.png").is_file()
+    page = (out / "compare.html").read_text()
+    assert "<script" not in page and "http" not in page
+
+
+def test_compare_runs_without_shared_episodes_say_so(template, tmp_path):
+    a = write_run(tmp_path / "a", mixed(template))
+    other = [dict(r, seed=r["seed"] + 500) for r in mixed(template)]
+    b = write_run(tmp_path / "b", other)
+    c = compare_runs([a, b])
+    assert c.paired[0].shared == 0 and c.paired[0].metrics == {}
+    from counterscene_env.report.compare import document
+    from counterscene_env.report.markdown import render
+
+    assert "b: no episode in common with a" in render(document(c))
+
+
+# ---------------------------------------------------------------------- bad input
+
+
+def test_bad_run_directories_are_refused_with_the_file_named(template, tmp_path, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(FileNotFoundError, match=r"episodes\.jsonl"):
+        load_run(empty)
+    run = write_run(tmp_path / "run", mixed(template))
+    lines = (run / "episodes.jsonl").read_text().splitlines()
+    broken = json.loads(lines[1])
+    del broken["min_ttc"]
+    lines[1] = json.dumps(broken)
+    (run / "episodes.jsonl").write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=r"episodes.jsonl: line 2 has no field 'min_ttc'"):
+        load_run(run)
+    with pytest.raises(ValueError, match="at least two"):
+        compare_runs([run])
+    with pytest.raises(ValueError, match="more than once"):
+        compare_runs([run, run / "."])
+    assert main(["report", str(empty)]) == 1
+    assert "episodes.jsonl" in capsys.readouterr().err
+    assert main(["compare", str(empty), str(run)]) == 1
+    assert "episodes.jsonl" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------- videos of a real run
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("one_torch_thread")
+def test_videos_of_the_worst_episodes_replay_the_recorded_run(generated, tmp_path, capsys):
+    pytest.importorskip("imageio")
+    pytest.importorskip("imageio_ffmpeg")
+    import imageio.v3 as iio
+
+    from counterscene_env.scene.shards import save_scenes
+
+    shard = tmp_path / "scenes.npz"
+    save_scenes([generated["intersection"], generated["merge"]], shard)
+    run = tmp_path / "run"
+    code = main(
+        ["stress", "--scenario", str(shard), "--episodes", "2", "--duration", "1",
+         "--samples", "2", "--batch", "2", "--quiet", "--out", str(run)]
+    )  # fmt: skip
+    assert code == 0
+    capsys.readouterr()
+    assert main(["report", str(run), "--videos", "2", "--quiet"]) == 0
+    for i in (0, 1):
+        gif = run / "videos" / f"episode_{i:04d}.gif"
+        assert (run / "videos" / f"episode_{i:04d}.mp4").stat().st_size > 0
+        frames = iio.imread(gif, index=None)
+        assert frames.shape[0] == 11  # "now" and ten 0.1 s steps
+    md = (run / "report.md").read_text()
+    assert "(videos/episode_0000.mp4)" in md and "(videos/episode_0001.gif)" in md
+    assert "differs from the record" not in md  # the replays are the recorded episodes
