@@ -9,8 +9,10 @@ In order, on the same machine state:
    resets included): env steps/s and the share of step time spent in world-model replans.
 3. **Replans**: every replan of step 2 timed on its own by the closed loop: median and p95 [ms].
    FLOPs of one replan are counted with torch's flop counter (matmuls and attention only:
-   element-wise work is not counted, so the fraction of peak is a lower bound) and set against
-   the median replan time and the CPU's matmul peak (``world_model/bench.py``).
+   element-wise work is not counted, so the fraction of peak is a lower bound), for an
+   episode's first replan (from pure noise) and for a warm-started one (every later replan,
+   so the median's), and the warm one is set against the median replan time and the CPU's
+   matmul peak (``world_model/bench.py``).
 4. **Stress**: seconds per ``counterscene stress`` episode (intersection, IDM planner, full
    guidance, the default batch).
 5. **Memory**: peak resident set size of the process [MB] (``getrusage``).
@@ -93,23 +95,28 @@ def bench_env_and_replans(steps: int, seed: int = 0) -> dict[str, Any]:
     }
 
 
-def _replan_flops(env) -> int:
-    """FLOPs of the env's next replan (a fresh episode, stepped until a replan happens)."""
+def _replan_flops(env) -> dict[str, int]:
+    """FLOPs of a fresh episode's first replan (``"cold"``: from pure noise) and of its
+    second (``"warm"``: warm-started, as every later replan is, ``SimConfig.warm_start_steps``).
+    """
     from torch.utils.flop_counter import FlopCounterMode
 
     env.reset(seed=12345)
     ep = env.loop.episodes[0]
-    counter = FlopCounterMode(display=False)
+    found: list[int] = []
     for _ in range(100):
         n = ep.replans
+        counter = FlopCounterMode(display=False)
         with counter:
             _, _, terminated, truncated, _ = env.step(env.action_space.sample())
         if ep.replans > n:
-            return int(counter.get_total_flops())
+            found.append(int(counter.get_total_flops()))
+            if len(found) == 2:
+                break
         if terminated or truncated:
             break
-        counter = FlopCounterMode(display=False)
-    return 0
+    found += [0] * (2 - len(found))
+    return {"cold": found[0], "warm": found[1]}
 
 
 def bench_stress(episodes: int, model_dir: str = "default", seed: int = 100000) -> dict[str, Any]:
@@ -156,7 +163,8 @@ def run_bench(
     peak = matmul_peak_gflops()
     times = sorted(env.pop("replan_s"))
     median = statistics.median(times) if times else float("nan")
-    achieved = env["flops_per_replan"] / median / 1e9 if times else float("nan")
+    flops = env.pop("flops_per_replan")
+    achieved = flops["warm"] / median / 1e9 if times else float("nan")
     return {
         "highway_env_steps_per_s": anchor["steps_per_s"],
         "env_steps_per_s": env["steps_per_s"],
@@ -168,7 +176,8 @@ def run_bench(
             "count": len(times),
         },
         "stress_s_per_episode": stress["s_per_episode"],
-        "flops_per_replan": env["flops_per_replan"],
+        "flops_per_replan": flops["warm"],
+        "flops_per_cold_replan": flops["cold"],
         "achieved_gflops": achieved,
         "peak_gflops": peak,
         "peak_fraction": achieved / peak,
