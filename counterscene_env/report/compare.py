@@ -124,9 +124,19 @@ def _labels(runs: Sequence[Run]) -> list[str]:
     if len(set(names)) < len(names):  # same directory names: tell them apart by their paths
         names = [str(r.directory) for r in runs]
     return [
-        name + (f" ({', '.join(f'{k}={f.get(k)}' for k in keys)})" if keys else "")
+        name + (f" ({', '.join(f'{k}={_short(f.get(k))}' for k in keys)})" if keys else "")
         for name, f in zip(names, flats, strict=True)
     ]
+
+
+#: Longest setting value spelled out in a run's label; longer ones (a borrowed env config) are
+#: cut, their whole value stays in the run's run.json.
+LABEL_VALUE_CHARS = 40
+
+
+def _short(value) -> str:
+    text = str(value)
+    return text if len(text) <= LABEL_VALUE_CHARS else text[: LABEL_VALUE_CHARS - 3] + "..."
 
 
 def verdict(c: Comparison, p: PairedRun, key: str) -> str:
