@@ -11,6 +11,7 @@ from torch.utils.data import default_collate
 from counterscene_env.dynamics import unicycle_rollout
 from counterscene_env.world_model.config import preset
 from counterscene_env.world_model.dataset import SceneWindowDataset
+from counterscene_env.world_model.map_guidance import off_lane_loss
 from counterscene_env.world_model.model import Normalization, WorldModel
 from counterscene_env.world_model.train import action_statistics
 
@@ -101,6 +102,8 @@ def test_a_warm_start_runs_only_its_last_steps(tiny, scene_batch):
     assert (n_cold, n_warm, n_full) == (10, 3, 10)
     assert torch.equal(full.trajectory, cold.trajectory)
     assert torch.isfinite(warm.trajectory).all()
+    with pytest.raises(ValueError, match="init must be"):
+        tiny.sample(scene_batch, 1, torch.Generator(), init=init[:, :1], init_steps=3)
     # Started near the init, a few steps stay nearer to it than a sample from pure noise.
     mask = warm.valid[:, None].expand(-1, 2, -1)
     assert warm.normalized[mask].abs().mean() < cold.normalized[mask].abs().mean()
@@ -437,14 +440,14 @@ def test_off_lane_term_counts_only_where_the_log_keeps_to_a_lane(tiny):
     batch = _batch(tiny, [_straight_scene()])
     log = batch["future"][..., :2]
     ok = batch["future_valid"] & tiny.agent_mask(batch)[..., None]
-    assert float(tiny.off_lane(batch, log, log, ok)) == 0.0  # the log itself: nothing
+    assert float(off_lane_loss(tiny, batch, log, log, ok)) == 0.0  # the log itself: nothing
     # Shifted 9 m to the left, over the first second (well inside the window's map): the
     # cars on y = 0 and y = 4 run 3 m and 7 m beyond the outer strip's edge (y = 6).
     first = ok & (torch.arange(ok.shape[-1]) < 10)
     side = log + torch.tensor([0.0, 9.0])
-    assert float(tiny.off_lane(batch, side, log, first)) == pytest.approx(5.0, abs=1e-3)
+    assert float(off_lane_loss(tiny, batch, side, log, first)) == pytest.approx(5.0, abs=1e-3)
     # A log that itself leaves the lanes (a car on the verge) is never pulled back.
-    assert float(tiny.off_lane(batch, side, side, ok)) == 0.0
+    assert float(off_lane_loss(tiny, batch, side, side, ok)) == 0.0
     # In the loss, the term adds its weight times its value (same noise, same draw).
     g = lambda: torch.Generator().manual_seed(3)  # noqa: E731
     plain, weighted = tiny.loss(batch, g()), tiny.loss(batch, g(), off_lane_weight=2.0)

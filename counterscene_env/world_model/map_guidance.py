@@ -59,6 +59,27 @@ def lane_excess(
     return excess.min(dim=-1).values
 
 
+# A predicted point counts against the training loss's off-lane term only where the log itself
+# is within this of a window lane strip [m]: the term teaches the model to follow the lanes
+# the log follows, never to pull a car parked on the verge (or outside the map) onto a lane.
+OFF_LANE_LOG_TOLERANCE = 0.25
+
+
+def off_lane_loss(
+    model, batch: dict[str, torch.Tensor], pred: torch.Tensor, log: torch.Tensor, ok: torch.Tensor
+) -> torch.Tensor:
+    """Mean off-lane distance [m] of ``pred [B, K, F, 2]`` where ``log [B, K, F, 2]`` is on
+    a window lane, at the last step of each action token (``ok [B, K, F]``): the training
+    loss's off-lane term (``WorldModel.loss``)."""
+    s = model.config.action_stride
+    lanes = (batch["map"], batch["map_valid"], batch["map_widths"])
+    pred, log, ok = pred[:, :, s - 1 :: s], log[:, :, s - 1 :: s], ok[:, :, s - 1 :: s]
+    with torch.no_grad():
+        ok = ok & (lane_excess(log, *lanes) <= OFF_LANE_LOG_TOLERANCE)
+    excess = lane_excess(pred, *lanes)
+    return (excess * ok).sum() / ok.float().sum().clamp(min=1)
+
+
 def _on_lane_agents(model, batch: dict[str, torch.Tensor], num_samples: int):
     """The window's lanes and the agents' current states, repeated for ``num_samples`` samples
     per scene (``N = B * S`` rows), and ``guided [N, K]``: the real agents on a lane now."""

@@ -32,7 +32,7 @@ from counterscene_env.dynamics import (
 from counterscene_env.world_model.cig import edge_features
 from counterscene_env.world_model.config import ModelConfig
 from counterscene_env.world_model.denoiser import Context, Denoiser
-from counterscene_env.world_model.map_guidance import lane_excess, steer_onto_lanes
+from counterscene_env.world_model.map_guidance import off_lane_loss, steer_onto_lanes
 from counterscene_env.world_model.scheduler import CosineScheduler
 from counterscene_env.world_model.window import WindowConfig
 
@@ -45,11 +45,6 @@ LANE_WIDTH_SCALE = 4.0  # m
 # Trajectory terms of the training loss, added to the action MSE (normalised units): the mean
 # position error [m], heading error [rad] and speed error [m/s] of the rolled-out prediction.
 TRAJECTORY_WEIGHTS = {"position": 0.1, "yaw": 1.0, "speed": 0.1}
-
-# A predicted point counts against the off-lane term only where the log itself is within this
-# of a window lane strip [m]: the term teaches the model to follow the lanes the log follows,
-# never to pull a car parked on the verge (or outside the window's map) onto a lane.
-OFF_LANE_LOG_TOLERANCE = 0.25
 
 #: ``guidance(mean, sigma, t, x0) -> mean``: edits the posterior mean ``[B*S, K, Ta, 2]``
 #: (normalised actions) at one denoising step; see :meth:`CosineScheduler.step`.
@@ -318,7 +313,7 @@ class WorldModel(nn.Module):
             generator: diffusion time steps, noise and graph dropout.
             off_lane_weight: weight of the off-lane term: the mean distance [m] by which the
                 rolled-out prediction lies outside every window lane strip, at the action
-                tokens' steps where the log lies on one (``OFF_LANE_LOG_TOLERANCE``). The
+                tokens' steps where the log lies on one (``map_guidance.off_lane_loss``). The
                 position error alone weighs a turn that goes wide onto the verge no more than
                 one that goes wide along the lane; the open-loop off-road rate is mostly such
                 under-turns (docs/world_model.md).
@@ -356,7 +351,7 @@ class WorldModel(nn.Module):
         loss = action + tw["position"] * pos + tw["yaw"] * yaw + tw["speed"] * speed
         off_lane = torch.zeros((), device=device)
         if off_lane_weight > 0:
-            off_lane = self.off_lane(batch, traj[..., :2], fut[..., :2], fut_ok)
+            off_lane = off_lane_loss(self, batch, traj[..., :2], fut[..., :2], fut_ok)
             loss = loss + off_lane_weight * off_lane
         return {
             "loss": loss,
@@ -366,23 +361,6 @@ class WorldModel(nn.Module):
             "speed": speed.detach(),
             "off_lane": off_lane.detach(),
         }
-
-    def off_lane(
-        self,
-        batch: dict[str, torch.Tensor],
-        pred: torch.Tensor,
-        log: torch.Tensor,
-        ok: torch.Tensor,
-    ) -> torch.Tensor:
-        """Mean off-lane distance [m] of ``pred [B, K, F, 2]`` where ``log [B, K, F, 2]`` is on
-        a window lane, at the last step of each action token (``ok [B, K, F]``)."""
-        s = self.config.action_stride
-        lanes = (batch["map"], batch["map_valid"], batch["map_widths"])
-        pred, log, ok = pred[:, :, s - 1 :: s], log[:, :, s - 1 :: s], ok[:, :, s - 1 :: s]
-        with torch.no_grad():
-            ok = ok & (lane_excess(log, *lanes) <= OFF_LANE_LOG_TOLERANCE)
-        excess = lane_excess(pred, *lanes)
-        return (excess * ok).sum() / ok.float().sum().clamp(min=1)
 
     # ------------------------------------------------------------------ sampling
     def sample(
@@ -462,13 +440,7 @@ class WorldModel(nn.Module):
             one = (num_samples, *shape[1:])
             return torch.cat([torch.randn(one, generator=g, device=device) for g in generator])
 
-        x = randn()
-        timesteps = self.scheduler.timesteps.tolist()
-        if init is not None and 0 < init_steps < len(timesteps):
-            timesteps = timesteps[-init_steps:]
-            level = torch.full((B * num_samples,), timesteps[0], dtype=torch.long, device=device)
-            start = init.to(x.dtype).repeat_interleave(num_samples, 0)
-            x = self.scheduler.add_noise(start, x, level)  # x was drawn as the noise eps
+        x, timesteps = self._start(randn(), init, init_steps, num_samples)
         for t in timesteps:
             tt = torch.full((B * num_samples,), t, device=device, dtype=torch.long)
             with torch.no_grad():
@@ -491,6 +463,27 @@ class WorldModel(nn.Module):
             normalized=x.reshape(B, S, *x.shape[1:]),
             valid=valid,
         )
+
+    def _start(
+        self, noise: torch.Tensor, init: torch.Tensor | None, init_steps: int, num_samples: int
+    ) -> tuple[torch.Tensor, list[int]]:
+        """The first sample ``[B S, K, Ta, 2]`` and the steps to run: pure ``noise`` and every
+        step, or ``init`` noised to the level of the last ``init_steps`` (``sample``)."""
+        timesteps = self.scheduler.timesteps.tolist()
+        if init is None:
+            return noise, timesteps
+        B, K = noise.shape[0] // num_samples, noise.shape[1]
+        if tuple(init.shape) != (B, K, self.config.action_tokens, 2):
+            raise ValueError(
+                f"init must be [B, K, Ta, 2] = {[B, K, self.config.action_tokens, 2]} "
+                f"normalised action tokens, got {list(init.shape)}"
+            )
+        if not 0 < init_steps < len(timesteps):
+            return noise, timesteps
+        timesteps = timesteps[-init_steps:]
+        level = torch.full((noise.shape[0],), timesteps[0], dtype=torch.long, device=noise.device)
+        start = init.to(noise.dtype).repeat_interleave(num_samples, 0)
+        return self.scheduler.add_noise(start, noise, level), timesteps
 
 
 def _chain(first: GuidanceHook, second: GuidanceHook) -> GuidanceHook:
