@@ -81,3 +81,14 @@ def test_a_mixed_spec_takes_its_roads_in_turn_each_from_the_seed():
     assert mixed == [merge[0], roundabout[0], merge[1]]
     with pytest.raises(ValueError, match="'nowhere'"):
         check_spec("merge,nowhere")
+
+
+def test_a_users_intersection_env_changes_no_later_scene():
+    # Building highway-env's intersection env sets IDM class constants process-wide.
+    import gymnasium as gym
+    import highway_env  # noqa: F401
+
+    before = generate("merge", seed=4)
+    gym.make("intersection-v2").close()
+    after = generate("merge", seed=4)
+    assert np.array_equal(before.positions, after.positions)

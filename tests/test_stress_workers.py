@@ -141,10 +141,12 @@ def test_ctrl_c_leaves_a_partial_summary_and_resume_finishes_the_run(shard, tmp_
     assert partial["episodes_requested"] == 8
     assert json.loads((run / "timings.json").read_text())["episodes"] == len(kept)
 
-    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    # The partial report is there to read, and a refused rerun changes no file.
+    assert "unfinished" in (run / "report.md").read_text()
+    before = {p.relative_to(run): p.read_bytes() for p in run.rglob("*") if p.is_file()}
     refused = subprocess.run(cmd, env=env, capture_output=True, text=True)
     assert refused.returncode == 1 and "pass --resume" in refused.stderr
-    assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+    assert {p.relative_to(run): p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
 
     assert subprocess.run([*cmd, "--resume"], env=env).returncode == 0
     assert main([*args, "--out", str(tmp_path / "whole")]) == 0

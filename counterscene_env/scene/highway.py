@@ -327,19 +327,44 @@ class _Traffic:
 
 @contextlib.contextmanager
 def _pristine_idm_constants() -> Iterator[None]:
-    """IntersectionEnv sets IDM class constants process-wide; undo that after each recording."""
-    names = ("DISTANCE_WANTED", "COMFORT_ACC_MAX", "COMFORT_ACC_MIN", "TIME_WANTED", "DELTA")
-    classes = (IDMVehicle, ForwardIDMVehicle)
-    saved = {(c, n): c.__dict__[n] for c in classes for n in names if n in c.__dict__}
+    """Record with highway-env's own IDM constants, whatever ran before, and leave the
+    caller's as they were.
+
+    Building an ``IntersectionEnv`` (ours, or a user's ``gym.make("intersection-v1")``) sets
+    IDM class constants process-wide; a scene recorded after it would differ from the same
+    seed recorded before it. So the constants are set to :data:`_IDM_DEFAULTS` on entry and
+    the caller's values restored on exit.
+    """
+    saved = {(c, n): c.__dict__.get(n, _MISSING) for c in _IDM_CLASSES for n in _IDM_NAMES}
     try:
+        _set_idm_constants(_IDM_DEFAULTS)
         yield
     finally:
-        for c in classes:
-            for n in names:
-                if (c, n) in saved:
-                    setattr(c, n, saved[(c, n)])
-                elif n in c.__dict__:
-                    delattr(c, n)
+        _set_idm_constants(saved)
+
+
+def _set_idm_constants(values: dict) -> None:
+    for (c, n), v in values.items():
+        if v is not _MISSING:
+            setattr(c, n, v)
+        elif n in c.__dict__:
+            delattr(c, n)
+
+
+_MISSING = object()
+_IDM_NAMES = ("DISTANCE_WANTED", "COMFORT_ACC_MAX", "COMFORT_ACC_MIN", "TIME_WANTED", "DELTA")
+_IDM_CLASSES = (IDMVehicle, ForwardIDMVehicle)
+#: highway-env's IDM constants as this module found them at import, before any of our envs
+#: existed (``counterscene_env`` is imported before a user builds highway-env envs with it).
+_IDM_DEFAULTS = {(c, n): c.__dict__.get(n, _MISSING) for c in _IDM_CLASSES for n in _IDM_NAMES}
+
+
+def idm_defaults() -> dict[str, float]:
+    """highway-env's ``IDMVehicle`` constants (``DISTANCE_WANTED`` [m], ``COMFORT_ACC_MAX`` and
+    ``COMFORT_ACC_MIN`` [m/s^2], ``TIME_WANTED`` [s], ``DELTA``) as found at import: set on an
+    IDM vehicle instance, they shield it from the process-wide changes highway-env's
+    intersection env makes (``sim/traffic.py``)."""
+    return {n: _IDM_DEFAULTS[(IDMVehicle, n)] for n in _IDM_NAMES}
 
 
 # ---------------------------------------------------------------------- recording

@@ -16,6 +16,7 @@ from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from counterscene_env.scene.core import Scene
+from counterscene_env.scene.highway import idm_defaults
 from counterscene_env.sim.state import WorldState
 
 
@@ -76,6 +77,11 @@ class IDMLaneFollower:
             enable_lane_change=False,
         )
         self.vehicle.LENGTH, self.vehicle.WIDTH = (float(x) for x in scene.extents[e])
+        # highway-env's own IDM constants on the instance: building an intersection env (ours
+        # or a user's) changes the class's for the whole process, and an episode must not
+        # depend on what ran before it.
+        for name, value in idm_defaults().items():
+            setattr(self.vehicle, name, value)
         # Follow the logged route: plan to the end node of the lane the agent's log ends on.
         last = np.flatnonzero(scene.valid[e])[-1]
         goal = net.get_closest_lane_index(scene.positions[e, last], scene.yaws[e, last])
