@@ -8,10 +8,11 @@ Reading never changes the directory: a run killed mid-line keeps its cut last li
 from __future__ import annotations
 
 import json
-import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
+
+from counterscene_env.stress.log import record_from_json
 
 #: Record fields every report and comparison reads; a record without one is refused.
 REQUIRED_FIELDS = (
@@ -40,7 +41,7 @@ class Run:
             run is unfinished), None when there is none.
         timings: ``timings.json`` (wall-clock figures, apart from the metrics), None when
             there is none.
-        records: the finished episodes in order, one dict each (``stress._record``), with
+        records: the finished episodes in order, one dict each (``stress.episodes``), with
             JSON nulls read back as NaN, and ``min_ttc`` null as inf (no projected conflict).
         cut_lines: lines of ``episodes.jsonl`` skipped as cut short by a kill (0 or 1).
     """
@@ -131,35 +132,7 @@ def _read_records(path: Path) -> tuple[list[dict], int]:
             raise ValueError(
                 f"{path}: line {n} is episode {rec['episode']!r}, expected {len(records)}"
             )
-        records.append(record_values(rec))
+        records.append(record_from_json(rec))
     if not records:
         raise ValueError(f"{path}: no finished episode")
     return records, cut
-
-
-def record_values(record: dict) -> dict:
-    """A record as written (JSON nulls for NaN and inf) back to its values: a null
-    ``min_ttc`` is inf (no projected conflict), any other null number NaN. The same rule as
-    ``stress.EpisodeLog`` reading its own log."""
-    out = dict(record)
-    for key, value in record.items():
-        if value is None and key not in _NULLABLE:
-            out[key] = math.inf if key == "min_ttc" else math.nan
-    out["per_second"] = {
-        h: {k: math.nan if v is None else float(v) for k, v in row.items()}
-        for h, row in record["per_second"].items()
-    }
-    return out
-
-
-#: Record fields whose null means "none" rather than a number (ids, names, reasons).
-_NULLABLE = frozenset(
-    {
-        "adversary_id",
-        "scene_seed",
-        "adversary_type",
-        "adversary_tier",
-        "danger_score",
-        "fallback",
-    }
-)

@@ -91,7 +91,7 @@ class EpisodeLog:
         for i, rec in enumerate(records):
             if rec.get("episode") != i:
                 raise ValueError(f"{self.path}: line {i + 1} is not episode {i}")
-        return [_from_json(rec) for rec in records]
+        return [record_from_json(rec) for rec in records]
 
     def append(self, records: Sequence[dict]) -> None:
         """Add finished episodes, on disk before this returns (and ``metrics.json``, with
@@ -120,9 +120,10 @@ class EpisodeLog:
         return self.records
 
 
-def _from_json(record: dict) -> dict:
-    """A record as written (``metrics.json_safe``: NaN and inf as null) back to its values:
-    a null ``min_ttc`` is inf (no projected conflict), any other null metric NaN."""
+def record_from_json(record: dict) -> dict:
+    """An episode record as written (``metrics.json_safe``: NaN and inf as null) back to its
+    values: a null ``min_ttc`` is inf (no projected conflict), any other null metric NaN;
+    nulls that mean "none" (no adversary, no fallback) stay None."""
     out = dict(record)
     for key in metrics.SCENE_KEYS:
         if out.get(key, 0) is None:
