@@ -30,13 +30,12 @@ from counterscene_env.metrics.realism import (
 from counterscene_env.metrics.safety import (
     agent_overlaps,
     any_collision,
+    braking_samples,
     ego_adversary_collision_steps,
     ego_collision_steps,
-    hard_braking_flags,
     hbr_all_of,
     hbr_ego_of,
     hbr_paper,
-    longitudinal_acceleration,
     min_clearance,
     min_ttc_ego,
 )
@@ -79,10 +78,10 @@ def evaluate_scene(
     overlaps = agent_overlaps(sim)
     off = off_road_steps(sim)
     parked = parked_agents(sim)
-    flags, mask = hard_braking_flags(sim, None, "position", smooth, HARD_BRAKE_THRESHOLD)
+    acc, mask = braking_samples(sim, None, "position", smooth)
+    flags = (acc < HARD_BRAKE_THRESHOLD) & mask  # as hard_braking_flags, from one pass
     e = sim.ego_index
-    acc, acc_ok = longitudinal_acceleration(sim, "position", smooth)
-    ego_acc = acc[e][acc_ok[e]]
+    ego_acc = acc[e][mask[e]]
     peak_decel = max(0.0, -float(ego_acc.min())) if ego_acc.size else math.nan
     dist = ok = None
     if factual is not None:

@@ -157,12 +157,20 @@ def longitudinal_acceleration(
     return acc, valid
 
 
+def braking_samples(
+    scene: Scene, horizon: float | None, source: AccelerationSource, smooth: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``[N, T_roll]`` longitudinal accelerations [m/s^2] and the mask of the samples that
+    lie within the horizon (the samples HBR thresholds)."""
+    acc, valid = longitudinal_acceleration(scene, source, smooth)
+    return acc, valid & in_horizon(scene, horizon, REACH[source])[None]
+
+
 def hard_braking_flags(
     scene: Scene, horizon: float | None, source: AccelerationSource, smooth: float, threshold
 ) -> tuple[np.ndarray, np.ndarray]:
     """``[N, T_roll]`` hard-braking flags and the sample mask within the horizon."""
-    acc, valid = longitudinal_acceleration(scene, source, smooth)
-    mask = valid & in_horizon(scene, horizon, REACH[source])[None]
+    acc, mask = braking_samples(scene, horizon, source, smooth)
     return (acc < threshold) & mask, mask
 
 

@@ -50,43 +50,57 @@ def _errorbar(ax, x, ests: Sequence[Estimate], scale: float = 1.0, **kw) -> None
 def per_second_plots(table: dict[str, dict[str, Estimate]], root: Path) -> list[Figure]:
     """CR and HBR (% of episodes) and ADE and FDE (m) against the horizon second, from
     ``tables.per_second_table``; the PNGs go to ``root/plots/``."""
+    rates = _by_second(
+        table,
+        root,
+        (("CR", "CR: ego collided by then"), ("HBR", "HBR: ego braked hard")),
+        "cr_hbr_by_second.png",
+        "Collision and hard-braking rate against the horizon",
+        "CR and HBR at each horizon second: episodes with an ego collision (hard braking) "
+        "at or before it; bars are 95 % Wilson intervals.",
+        ylabel="episodes [%]",
+        scale=100,
+        ylim=(-3, 103),
+    )
+    displacement = _by_second(
+        table,
+        root,
+        (("ADE", "ADE"), ("FDE", "FDE")),
+        "ade_fde_by_second.png",
+        "Traffic's displacement from the factual log",
+        "ADE and FDE of the non-ego vehicles against the factual log at each horizon "
+        "second; bars are 95 % bootstrap intervals. FDE is missing past the rollout's end.",
+        ylabel="displacement from the log [m]",
+    )
+    return [rates, displacement]
+
+
+def _by_second(
+    table: dict[str, dict[str, Estimate]],
+    root: Path,
+    series: tuple[tuple[str, str], tuple[str, str]],
+    name: str,
+    title: str,
+    caption: str,
+    ylabel: str,
+    scale: float = 1.0,
+    ylim: tuple[float, float] | None = None,
+) -> Figure:
+    """Two ``(key, label)`` series of ``table`` against the horizon second, with intervals."""
     seconds = list(table)
     x = np.array([float(s) for s in seconds])
-    figures = []
     fig = MplFigure(figsize=(6.4, 4))
     ax = fig.add_subplot()
-    for dx, key, label in (
-        (-0.06, "CR", "CR: ego collided by then"),
-        (0.06, "HBR", "HBR: ego braked hard"),
-    ):  # the two series side by side, so their bars do not hide each other
-        _errorbar(ax, x + dx, [table[s][key] for s in seconds], 100, label=label)
-    ax.set(xlabel="horizon [s]", ylabel="episodes [%]", ylim=(-3, 103), xticks=x)
-    ax.set_title("Collision and hard-braking rate against the horizon")
+    # The two series side by side, so their bars do not hide each other.
+    for dx, (key, label) in zip((-0.06, 0.06), series, strict=True):
+        _errorbar(ax, x + dx, [table[s][key] for s in seconds], scale, label=label)
+    ax.set(xlabel="horizon [s]", ylabel=ylabel, xticks=x)
+    if ylim is not None:
+        ax.set_ylim(*ylim)
+    ax.set_title(title)
     ax.legend()
     ax.grid(alpha=0.3)
-    figures.append(
-        Figure(
-            _save(fig, root, "cr_hbr_by_second.png"),
-            "CR and HBR at each horizon second: episodes with an ego collision (hard braking) "
-            "at or before it; bars are 95 % Wilson intervals.",
-        )
-    )
-    fig = MplFigure(figsize=(6.4, 4))
-    ax = fig.add_subplot()
-    for dx, key in ((-0.06, "ADE"), (0.06, "FDE")):
-        _errorbar(ax, x + dx, [table[s][key] for s in seconds], label=key)
-    ax.set(xlabel="horizon [s]", ylabel="displacement from the log [m]", xticks=x)
-    ax.set_title("Traffic's displacement from the factual log")
-    ax.legend()
-    ax.grid(alpha=0.3)
-    figures.append(
-        Figure(
-            _save(fig, root, "ade_fde_by_second.png"),
-            "ADE and FDE of the non-ego vehicles against the factual log at each horizon "
-            "second; bars are 95 % bootstrap intervals. FDE is missing past the rollout's end.",
-        )
-    )
-    return figures
+    return Figure(_save(fig, root, name), caption)
 
 
 def histograms(records: Sequence[dict], root: Path) -> tuple[list[Figure], list[str]]:

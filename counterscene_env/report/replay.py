@@ -26,6 +26,7 @@ from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import scenes_for
 from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.stress import SB3_PREFIX
+from counterscene_env.stress.episodes import play_batch
 from counterscene_env.world_model.model import WorldModel
 
 #: Record fields a replay must reproduce for its video to be the recorded episode.
@@ -150,27 +151,15 @@ def replay_batch(model: WorldModel, run: Run, episodes: range, keep: Sequence[in
     seeds = [int(run.records[i]["seed"]) for i in episodes]
     loop = ClosedLoop(model, SimConfig.from_mapping(run.sim()))
     planners = [make_planner(str(run.identity.get("planner", "idm"))) for _ in scenes]
-    loop.reset(scenes, seeds)
-    for planner, scene, seed in zip(planners, scenes, seeds, strict=True):
-        planner.reset(scene, seed)
     rows = [episodes.index(e) for e in keep]
-    frames: dict[int, list[Frame]] = {b: [_frame(loop, b)] for b in rows}
-    B = len(scenes)
-    while not loop.done.all():
-        running = [not ep.done for ep in loop.episodes]
-        actions, states = np.zeros((B, 2)), np.full((B, 4), np.nan)
-        for b, planner in enumerate(planners):
-            if not running[b]:
-                continue
-            state = loop.state(b)
-            if planner.replays_log:
-                states[b] = planner.next_state(state)
-            else:
-                actions[b] = planner.act(state)
-        loop.step(actions, states)
+    frames: dict[int, list[Frame]] = {b: [] for b in rows}
+
+    def draw(moved: list[bool]) -> None:
         for b in rows:
-            if running[b]:  # a finished episode (a short log) stays on its last frame
+            if moved[b]:  # a finished episode (a short log) stays on its last frame
                 frames[b].append(_frame(loop, b))
+
+    play_batch(loop, scenes, seeds, planners, after=draw)
     return [_replay(loop, b, scenes[b], run.records[episodes[b]], frames[b]) for b in rows]
 
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -54,13 +54,7 @@ class Estimate:
     method: str
 
     def to_dict(self) -> dict:
-        return {
-            "value": self.value,
-            "low": self.low,
-            "high": self.high,
-            "n": self.n,
-            "method": self.method,
-        }
+        return asdict(self)
 
 
 def rate(flags: Sequence[float]) -> Estimate:
@@ -135,17 +129,7 @@ class Paired:
     test: str
 
     def to_dict(self) -> dict:
-        return {
-            "difference": self.difference,
-            "low": self.low,
-            "high": self.high,
-            "n": self.n,
-            "p_value": self.p_value,
-            "a_only": self.a_only,
-            "b_only": self.b_only,
-            "significant": self.significant,
-            "test": self.test,
-        }
+        return asdict(self)
 
 
 def paired_rate(a: Sequence[float], b: Sequence[float]) -> Paired:

@@ -3,23 +3,6 @@
 One job: turn a CommonRoad file, parsed by ``commonroad-io``'s ``CommonRoadFileReader`` (an
 optional extra: ``pip install "counterscene-env[commonroad]"``), into the scene contract.
 
-Agents: the file must have 0.1 s steps; scene step t is the file's time step t, and the log ends
-at the last state of any obstacle. Dynamic obstacles of type car, truck, bus, taxi, motorcycle,
-priorityVehicle or parkedVehicle are ``"vehicle"``, bicycle ``"cyclist"``, pedestrian
-``"pedestrian"``, any other ``"other"``. Static obstacles are ``"other"`` whatever their type
-(the world model drives only vehicles, and must not move them) and valid at every step. A track
-is the initial state plus the trajectory's states (an obstacle without a prediction has only its
-initial state); steps without a state are invalid. ``velocity`` is the signed speed along the
-heading (m/s). Where any state of a track lacks it, the track's speeds are derived from its
-positions (mean of the backward and forward differences that exist, signed by the heading; newer
-commonroad-io silently fills a missing initial velocity with 0) and its id is listed in
-``metadata["repairs"]``. Extents are a rectangle's (length, width), else the bounding box
-of a circle or polygon; a rectangle's ``origin_x_shift`` (newer commonroad-io) is undone so that
-positions are box centres. Obstacles with a set-based prediction (occupancy sets, not a log) or
-states without a point position or orientation are dropped, with the reason, into
-``metadata["dropped_tracks"]`` (the same two keys as the ScenarioNet importer's, which
-``counterscene inspect`` prints). Rows: the ego, then by obstacle id.
-
 Ego: the planning problem's ego is a planning task, not a logged car (in the NGSIM files its
 initial state matches no obstacle), so it is ignored. An ego choice is a dynamic vehicle whose
 mean speed over its valid steps is above :data:`MIN_EGO_SPEED`, valid from
@@ -33,6 +16,9 @@ Short logs: "now" moves earlier where the log does not hold 1 s after ``current_
 step); a log without 1 s of history before a future step raises :class:`CommonRoadTooShort`.
 ``metadata["history_steps"]`` counts the frames up to and including "now"
 (``current_index + 1``), ``metadata["future_steps"]`` those after it.
+
+Agents: read by ``scene/commonroad_tracks.py`` (its docstring); a scene's rows are the ego,
+then the others by obstacle id.
 
 Road: the lanelets, by ``scene/commonroad_map.py``.
 
@@ -50,14 +36,14 @@ import logging.handlers
 import os
 import warnings
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from counterscene_env.geometry import boxes_overlap, wrap_angle
+from counterscene_env.geometry import boxes_overlap
 from counterscene_env.scene.commonroad_map import CommonRoadError, road_from_lanelets
+from counterscene_env.scene.commonroad_tracks import Tracks, file_fault, read_tracks
 from counterscene_env.scene.core import (
     AGENT_TYPES,
     DEFAULT_DT,
@@ -66,7 +52,6 @@ from counterscene_env.scene.core import (
     SceneError,
     SceneTooShort,
     default_current_index,
-    drop_impossible_jumps,
 )
 from counterscene_env.scene.road import RoadMap
 
@@ -78,13 +63,6 @@ __all__ = [
     "load_commonroad",
 ]
 
-VEHICLE_TYPES = ("car", "truck", "bus", "taxi", "motorcycle", "priorityVehicle", "parkedVehicle")
-#: Agent type of each CommonRoad obstacle type of a dynamic obstacle; any other is "other".
-AGENT_TYPE = {
-    **dict.fromkeys(VEHICLE_TYPES, "vehicle"),
-    "bicycle": "cyclist",
-    "pedestrian": "pedestrian",
-}
 MIN_EGO_SPEED = 1.0  # [m/s] mean speed above which a vehicle is "moving" (an ego choice)
 HASH_RESOLUTION = 0.01  # [m] positions are rounded to this before hashing the traffic
 INSTALL_HINT = 'pip install "counterscene-env[commonroad]"'
@@ -93,20 +71,6 @@ _EGO_RULE = f"a vehicle above {MIN_EGO_SPEED:g} m/s mean speed, present around n
 
 class CommonRoadTooShort(CommonRoadError, SceneTooShort):
     """A recording too short for any episode (:func:`iter_commonroad` skips and counts it)."""
-
-
-@dataclass
-class _Tracks:
-    """The agents of one file on the 0.1 s grid, rows sorted by obstacle id."""
-
-    ids: list[str]
-    types: list[str]
-    positions: np.ndarray  # [N, T, 2] m, box centres
-    yaws: np.ndarray  # [N, T] rad
-    speeds: np.ndarray  # [N, T] m/s
-    valid: np.ndarray  # [N, T] bool
-    extents: np.ndarray  # [N, 2] m, (length, width)
-    notes: dict  # repairs and dropped_tracks (for the metadata)
 
 
 # ---------------------------------------------------------------------- public API
@@ -131,7 +95,7 @@ def load_commonroad(
     """
     path = Path(path)
     scenario, notes = _read_file(path)
-    tracks = _read_tracks(scenario, path.name)
+    tracks = read_tracks(scenario, path.name)
     return _scenes(scenario, tracks, path.name, current_index, notes, ego=ego)[0]
 
 
@@ -147,7 +111,7 @@ def commonroad_egos(source: Any, current_index: int = 30) -> list[str]:
         scenario, name = _read_file(Path(source))[0], Path(source).name
     else:
         scenario, name = source, str(getattr(source, "scenario_id", "<scenario>"))
-    tracks = _read_tracks(scenario, name)
+    tracks = read_tracks(scenario, name)
     ci = _effective_index(tracks.valid.shape[1], current_index, name)
     return [tracks.ids[r] for r in _ego_rows(tracks, ci)]
 
@@ -168,7 +132,7 @@ def duplicate_files(dir_or_file: str | os.PathLike) -> dict[str, str]:
     duplicates = {}
     for f in commonroad_files(dir_or_file):
         try:
-            tracks = _read_tracks(_read_file(f)[0], f.name)
+            tracks = read_tracks(_read_file(f)[0], f.name)
         except CommonRoadError:
             continue
         first = seen.setdefault(_traffic_hash(tracks), f.name)
@@ -204,7 +168,7 @@ def iter_commonroad(
     for f in files:
         try:
             scenario, notes = _read_file(f)
-            tracks = _read_tracks(scenario, f.name)
+            tracks = read_tracks(scenario, f.name)
             first = seen.setdefault(_traffic_hash(tracks), f.name)
             duplicate_of = None if first == f.name else first
             if duplicate_of:
@@ -275,142 +239,8 @@ def _effective_index(num_steps: int, current_index: int, source: str) -> int:
         raise CommonRoadTooShort(str(exc)) from None
 
 
-@contextlib.contextmanager
-def _file_fault(source: str, what: str) -> Iterator[None]:
-    """Turn an error from data of a type or shape not foreseen into a CommonRoadError: still
-    the file's fault, and said with its name rather than a traceback."""
-    try:
-        yield
-    except SceneError:
-        raise
-    except (TypeError, ValueError, AttributeError, IndexError, KeyError) as exc:
-        raise CommonRoadError(f"{source}: malformed {what} ({type(exc).__name__}: {exc})") from exc
-
-
-def _read_tracks(scenario: Any, source: str) -> _Tracks:
-    """The agents of a parsed scenario (module docstring, "Agents")."""
-    if abs(float(scenario.dt) - DEFAULT_DT) > 1e-9:
-        raise CommonRoadError(f"{source}: timeStepSize {scenario.dt} s; only 0.1 s is supported")
-    with _file_fault(source, "obstacle"):
-        rows, dropped = [], {}
-        obstacles = [(o, False) for o in scenario.dynamic_obstacles]
-        for obs, static in sorted(
-            obstacles + [(o, True) for o in scenario.static_obstacles],
-            key=lambda pair: int(pair[0].obstacle_id),
-        ):
-            states, why = _states(obs, static)
-            if why is None and (extent := _extent(obs.obstacle_shape)) is None:
-                why = f"unsupported shape {type(obs.obstacle_shape).__name__}"
-            if why is None:
-                rows.append((obs, static, states, extent))
-            else:
-                dropped[str(obs.obstacle_id)] = why
-        if not rows:
-            some = next(iter(dropped.items()), "none in the file")
-            raise CommonRoadError(f"{source}: no usable obstacle ({len(dropped)} dropped: {some})")
-        tracks = _stack(rows)
-    tracks.notes["dropped_tracks"] = dropped
-    return tracks
-
-
-def _states(obs: Any, static: bool) -> tuple[list[Any], str | None]:
-    """The logged states of an obstacle, or why it cannot be used."""
-    states = [obs.initial_state]
-    pred = None if static else obs.prediction
-    if pred is not None:
-        traj = getattr(pred, "trajectory", None)
-        if traj is None:
-            return [], f"{type(pred).__name__}: a prediction, not a logged trajectory"
-        states += list(traj.state_list)
-    for s in states:
-        if not isinstance(s.time_step, int | np.integer) or s.time_step < 0:
-            return [], f"a state at time {s.time_step!r}, not a step >= 0"
-        if np.shape(getattr(s, "position", None)) != (2,):
-            return [], "a state without a point position"
-        if getattr(s, "orientation", None) is None:
-            return [], "a state without orientation"
-    return states, None
-
-
-def _extent(shape: Any) -> tuple[float, float] | None:
-    """(length, width) m of an obstacle shape; circles and polygons by their bounding box."""
-    if hasattr(shape, "length") and hasattr(shape, "width"):
-        return float(shape.length), float(shape.width)
-    if hasattr(shape, "radius"):
-        return 2.0 * float(shape.radius), 2.0 * float(shape.radius)
-    vertices = getattr(shape, "vertices", None)
-    if vertices is not None and np.ndim(vertices) == 2 and len(vertices) >= 3:
-        size = np.ptp(np.asarray(vertices, dtype=np.float64)[:, :2], axis=0)
-        return float(size[0]), float(size[1])
-    return None
-
-
-def _float(value: Any) -> float:
-    return np.nan if value is None else float(value)
-
-
-def _stack(rows: list[tuple]) -> _Tracks:
-    """Put each obstacle's states on the [N, T] grid; derive missing speeds from positions."""
-    n, num_steps = len(rows), max(s.time_step for r in rows for s in r[2]) + 1
-    pos, yaw = np.zeros((n, num_steps, 2)), np.zeros((n, num_steps))
-    speed, valid = np.zeros((n, num_steps)), np.zeros((n, num_steps), dtype=bool)
-    derived = []
-    for i, (obs, static, states, _) in enumerate(rows):
-        t = np.array([s.time_step for s in states])
-        pos[i, t] = [np.asarray(s.position, dtype=np.float64) for s in states]
-        yaw[i, t] = [float(s.orientation) for s in states]
-        speed[i, t] = 0.0 if static else [_float(getattr(s, "velocity", None)) for s in states]
-        valid[i, t] = True
-        if static:  # it stands there for the whole log
-            pos[i], yaw[i], valid[i] = pos[i, t[0]], yaw[i, t[0]], True
-        if np.isnan(speed[i]).any():  # all of it: newer versions fill a missing first one with 0
-            speed[i] = _derived_speed(pos[i], yaw[i], valid[i])
-            derived.append(str(obs.obstacle_id))
-        # The state's point sits origin_x_shift ahead of the box centre (newer commonroad-io).
-        shift = float(getattr(obs.obstacle_shape, "origin_x_shift", 0.0) or 0.0)
-        pos[i] -= shift * np.stack([np.cos(yaw[i]), np.sin(yaw[i])], -1)
-    # A corrupt position (a jump no road user makes) costs its track's steps, not the file.
-    valid, repaired = drop_impossible_jumps(pos, valid, DEFAULT_DT)
-    ids = [str(r[0].obstacle_id) for r in rows]
-    return _Tracks(
-        ids=ids,
-        # Static obstacles are "other": the world model drives vehicles and must not move them.
-        types=["other" if r[1] else AGENT_TYPE.get(_kind(r[0]), "other") for r in rows],
-        positions=np.where(valid[..., None], pos, 0.0),
-        yaws=wrap_angle(np.where(valid, yaw, 0.0)),
-        speeds=np.where(valid, speed, 0.0),
-        valid=valid,
-        extents=np.array([r[3] for r in rows], dtype=np.float64),
-        notes={"repairs": _repairs(derived, {ids[r]: k for r, k in repaired.items()})},
-    )
-
-
-def _repairs(derived: list[str], jumped: dict[str, int]) -> dict[str, list[str]]:
-    """Track id -> what was repaired, worded as the ScenarioNet importer words it."""
-    out: dict[str, list[str]] = {k: ["speed derived from positions (no velocity)"] for k in derived}
-    for k, n in jumped.items():
-        out.setdefault(k, []).append(f"{n} steps after an impossible jump made invalid")
-    return out
-
-
-def _kind(obs: Any) -> str:
-    return str(getattr(obs.obstacle_type, "value", obs.obstacle_type))
-
-
-def _derived_speed(pos: np.ndarray, yaw: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """``[T]`` m/s from ``[T, 2]`` m positions: the mean of the backward and forward
-    differences that exist (both ends valid), signed by the heading; 0 with neither."""
-    ok = valid[1:] & valid[:-1]
-    diff = np.where(ok[:, None], np.diff(pos, axis=0) / DEFAULT_DT, 0.0)  # [T-1, 2]
-    pad = np.zeros((1, 2))
-    vel = np.concatenate([pad, diff]) + np.concatenate([diff, pad])
-    vel /= np.maximum(np.concatenate([[0], ok]) + np.concatenate([ok, [0]]), 1)[:, None]
-    sign = np.where(vel[:, 0] * np.cos(yaw) + vel[:, 1] * np.sin(yaw) < 0, -1.0, 1.0)
-    return sign * np.linalg.norm(vel, axis=1)
-
-
 # ---------------------------------------------------------------------- egos
-def _ego_problem(tracks: _Tracks, row: int, ci: int) -> str | None:
+def _ego_problem(tracks: Tracks, row: int, ci: int) -> str | None:
     """Why ``row`` is no ego choice at "now" step ``ci``, or None if it is one."""
     ok, start = tracks.valid[row], max(0, ci - MIN_HISTORY_STEPS)
     if tracks.types[row] != "vehicle":
@@ -429,14 +259,14 @@ def _ego_problem(tracks: _Tracks, row: int, ci: int) -> str | None:
     return None
 
 
-def _ego_rows(tracks: _Tracks, ci: int) -> list[int]:
+def _ego_rows(tracks: Tracks, ci: int) -> list[int]:
     """Rows of the ego choices: most valid steps first, then by id (the row order)."""
     rows = [r for r in range(len(tracks.ids)) if _ego_problem(tracks, r, ci) is None]
     return sorted(rows, key=lambda r: (-int(tracks.valid[r].sum()), r))
 
 
 # ---------------------------------------------------------------------- scenes
-def _traffic_hash(tracks: _Tracks) -> str:
+def _traffic_hash(tracks: Tracks) -> str:
     """Hash of the logged traffic: ids, types, validity and positions rounded to 1 cm."""
     text = "|".join(f"{i}:{t}" for i, t in zip(tracks.ids, tracks.types, strict=True))
     h = hashlib.sha256(text.encode())
@@ -447,7 +277,7 @@ def _traffic_hash(tracks: _Tracks) -> str:
 
 def _scenes(
     scenario: Any,
-    tracks: _Tracks,
+    tracks: Tracks,
     source: str,
     current_index: int,
     notes: list[str],
@@ -467,7 +297,7 @@ def _scenes(
         raise CommonRoadError(f"{source}: no vehicle qualifies as ego ({_EGO_RULE})")
     else:
         chosen = rows if all_egos else rows[:1]
-    with _file_fault(source, "lanelet"):  # e.g. a lanelet of zero width
+    with file_fault(source, "lanelet"):  # e.g. a lanelet of zero width
         road, facts = road_from_lanelets(scenario.lanelet_network.lanelets, source)
     sid = scenario.scenario_id
     metadata = {
@@ -493,7 +323,7 @@ def _scenes(
     return [_assemble(tracks, road, r, ci, metadata) for r in chosen]
 
 
-def _assemble(tracks: _Tracks, road: RoadMap, ego_row: int, ci: int, metadata: dict) -> Scene:
+def _assemble(tracks: Tracks, road: RoadMap, ego_row: int, ci: int, metadata: dict) -> Scene:
     order = [ego_row, *(r for r in range(len(tracks.ids)) if r != ego_row)]
     ego_id = tracks.ids[ego_row]
     try:

@@ -220,15 +220,34 @@ def run_batch(
 ) -> list[dict]:
     """Run B episodes together to their end (episode indices ``first ..``); one record each."""
     start = time.perf_counter()
+    play_batch(loop, scenes, seeds, planners)
+    share = (time.perf_counter() - start) / len(scenes)
+    return [_record(loop, b, scene, seeds[b], share, first + b) for b, scene in enumerate(scenes)]
+
+
+def play_batch(
+    loop: ClosedLoop,
+    scenes: Sequence[Scene],
+    seeds: Sequence[int],
+    planners: Sequence[Planner],
+    after: Callable[[list[bool]], None] | None = None,
+) -> None:
+    """Reset ``loop`` and the planners on B scenes and seeds, and step them to their end, each
+    ego driven by its planner. ``after(moved)``, if given, runs after the reset (every
+    episode moved to "now") and after every step (the ``[B]`` episodes that took it): a
+    report's replay draws its frames there."""
     loop.reset(scenes, seeds)
     for planner, scene, seed in zip(planners, scenes, seeds, strict=True):
         planner.reset(scene, seed)
     B = len(scenes)
+    if after is not None:
+        after([True] * B)
     while not loop.done.all():
+        stepped = [not ep.done for ep in loop.episodes]
         actions = np.zeros((B, 2))
         states = np.full((B, 4), np.nan)
         for b, planner in enumerate(planners):
-            if loop.episodes[b].done:
+            if not stepped[b]:
                 continue
             state = loop.state(b)
             if planner.replays_log:
@@ -236,10 +255,8 @@ def run_batch(
             else:
                 actions[b] = planner.act(state)
         loop.step(actions, states)
-    wall = time.perf_counter() - start
-    return [
-        _record(loop, b, scene, seeds[b], wall / B, first + b) for b, scene in enumerate(scenes)
-    ]
+        if after is not None:
+            after(stepped)
 
 
 def _record(loop: ClosedLoop, b: int, scene: Scene, seed: int, seconds: float, index: int) -> dict:
