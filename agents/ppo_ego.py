@@ -1,7 +1,9 @@
 """PPO ego against CounterScene's guided adversary: train, save, stress-test (one file).
 
 Trains Stable-Baselines3 PPO on ``CounterScene-v0`` (world-model traffic, the causal adversary
-guided with ``--guidance``, default ``full``) with ``--num-envs`` subprocess envs, saves
+guided with ``--guidance``, default ``full``) on ``--num-envs`` envs batched in one process
+(``counterscene_env.envs.sb3_vec.SB3VecEnv``: every replan is one world-model call for all of
+them), for ``--total-timesteps`` steps or ``--max-minutes`` of training, saves
 ``OUT/model.zip`` and its env sidecar ``OUT/model.env.json`` (the observation and action config,
 so ``counterscene stress --planner sb3:OUT/model.zip`` rebuilds matching spaces), then
 stress-tests the policy on ``--eval-episodes`` held-out episodes (seeds from ``--eval-seed``)
@@ -14,7 +16,7 @@ route) at 2 Hz, observing ``Kinematics``. Run::
 
     counterscene generate --scenario intersection --scenes 400 --seed 0 --out data/intersection
     python agents/ppo_ego.py --scenario data/intersection --eval-scenario intersection \
-        --total-timesteps 4800 --out runs/ppo_ego            # ~20 min of training on 2 cores
+        --total-timesteps 100000 --max-minutes 20 --out runs/ppo_ego   # 20 min on 2 cores
     python agents/ppo_ego.py --total-timesteps 64 --eval-episodes 1 --num-envs 1   # smoke test
 """
 
@@ -30,6 +32,8 @@ from pathlib import Path
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 
+from stable_baselines3.common.callbacks import BaseCallback
+
 
 @dataclass
 class Args:
@@ -40,8 +44,10 @@ class Args:
     """evaluation scenario (default: ``scenario``)"""
     total_timesteps: int = 4800
     """policy steps of training, all envs together"""
-    num_envs: int = 2
-    """parallel envs (subprocesses when > 1)"""
+    num_envs: int = 16
+    """envs batched in one vector env (one world-model call per replan for all)"""
+    max_minutes: float = 0.0
+    """stop training after this many minutes (0: no limit)"""
     seed: int = 0
     """seed of training (envs, PPO)"""
     guidance: str = "full"
@@ -55,8 +61,8 @@ class Args:
     num_samples: int = 4
     """world-model samples per replan"""
     learning_rate: float = 5e-4
-    n_steps: int = 64
-    """rollout steps per env and update"""
+    n_steps: int = 16
+    """rollout steps per env and update (16 envs x 16 = 256 steps per update)"""
     batch_size: int = 64
     n_epochs: int = 10
     gamma: float = 0.9
@@ -65,8 +71,8 @@ class Args:
     eval_seed: int = 100000
     """seed of evaluation episode 0 (held out: training scenes take random seeds)"""
     out: str = "runs/ppo_ego"
-    torch_threads: int = 1
-    """torch threads per process"""
+    torch_threads: int = 0
+    """torch threads (0: torch's default, every core)"""
 
 
 def parse_args(argv: list[str] | None = None) -> Args:
@@ -96,27 +102,31 @@ def env_config(args: Args) -> dict:
     }
 
 
-def make_env(config: dict, threads: int):
-    def thunk():
-        import gymnasium as gym
-        import torch
-        from stable_baselines3.common.monitor import Monitor
+class TimeLimit(BaseCallback):
+    """Stops training after ``minutes`` of it (0: never)."""
 
-        torch.set_num_threads(threads)
-        return Monitor(gym.make("counterscene_env:CounterScene-v0", config=config))
+    def __init__(self, minutes: float) -> None:
+        super().__init__()
+        self.minutes = minutes
 
-    return thunk
+    def _on_training_start(self) -> None:
+        self.start = time.perf_counter()
+
+    def _on_step(self) -> bool:
+        return not self.minutes or time.perf_counter() - self.start < 60 * self.minutes
 
 
 def train(args: Args, out: Path) -> Path:
     import torch
     from stable_baselines3 import PPO
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+    from stable_baselines3.common.vec_env import VecMonitor
 
-    torch.set_num_threads(args.torch_threads)
+    from counterscene_env.envs.sb3_vec import SB3VecEnv
+
+    if args.torch_threads:
+        torch.set_num_threads(args.torch_threads)
     config = env_config(args)
-    fns = [make_env(config, args.torch_threads) for _ in range(args.num_envs)]
-    venv = SubprocVecEnv(fns) if args.num_envs > 1 else DummyVecEnv(fns)
+    venv = VecMonitor(SB3VecEnv(args.num_envs, config=config))
     venv.seed(args.seed)
     model = PPO(
         "MlpPolicy",
@@ -131,7 +141,7 @@ def train(args: Args, out: Path) -> Path:
         verbose=1,
     )
     start = time.perf_counter()
-    model.learn(total_timesteps=args.total_timesteps)
+    model.learn(total_timesteps=args.total_timesteps, callback=TimeLimit(args.max_minutes))
     seconds = time.perf_counter() - start
     venv.close()
     path = out / "model.zip"

@@ -7,7 +7,8 @@ Importing the package registers (idempotently; gymnasium ignores entry points):
 
 - Gymnasium: ``CounterScene-v0`` (any scenario, default ``intersection``) and the variants
   ``CounterScene-{highway,merge,intersection,roundabout}-v0``; reachable as
-  ``gym.make("counterscene_env:CounterScene-v0")`` too.
+  ``gym.make("counterscene_env:CounterScene-v0")`` too. ``gymnasium.make_vec(id, num_envs=N)``
+  gives the batched vector env (``counterscene_env.envs.vector``).
 - PettingZoo: ``pettingzoo.make("parallel", "CounterScene-v0", num_egos=2)``.
 """
 
@@ -39,12 +40,18 @@ def _register() -> None:
     import gymnasium
 
     entry = "counterscene_env.envs.single_agent:CounterSceneEnv"
+    vector = "counterscene_env.envs.vector:CounterSceneVectorEnv"
     if ENV_ID not in gymnasium.registry:
-        gymnasium.register(id=ENV_ID, entry_point=entry)
+        gymnasium.register(id=ENV_ID, entry_point=entry, vector_entry_point=vector)
     for scenario in SCENARIO_VARIANTS:
         variant = f"CounterScene-{scenario}-v0"
         if variant not in gymnasium.registry:
-            gymnasium.register(id=variant, entry_point=entry, kwargs={"scenario": scenario})
+            gymnasium.register(
+                id=variant,
+                entry_point=entry,
+                vector_entry_point=vector,
+                kwargs={"scenario": scenario},
+            )
     import pettingzoo
 
     registry = getattr(pettingzoo, "parallel_registry", None)

@@ -15,7 +15,12 @@ In order, on the same machine state:
    matmul peak (``world_model/bench.py``).
 4. **Stress**: seconds per ``counterscene stress`` episode (intersection, IDM planner, full
    guidance, the default batch).
-5. **Memory**: peak resident set size of the process [MB] (``getrusage``).
+5. **Vector env**: ``gymnasium.make_vec("CounterScene-v0", num_envs=N)`` for N = 4, 16, 64
+   (one world-model call per replan for all N envs, ``envs/vector.py``), random actions,
+   autoresets included: aggregate env steps/s over all N envs, after the first reset (timed
+   apart); once with the default config (every reset records a fresh highway-env scene) and
+   once on a stored set of generated scenes (what a training run reads: a reset loads one).
+6. **Memory**: peak resident set size of the process [MB] (``getrusage``).
 
 The model's own sampling call (``world_model/bench.py``, the previous ``bench``) is reported
 beside them under ``"model"``.
@@ -30,6 +35,8 @@ from typing import Any
 
 import numpy as np
 
+#: Scenes of the stored scene set the vector env is also timed on.
+STORED_SCENES = 16
 #: highway-env's anchor env and the frequencies it runs at [Hz].
 ANCHOR_ENV = "intersection-v2"
 ANCHOR_FREQUENCY = 10
@@ -131,6 +138,55 @@ def bench_stress(episodes: int, model_dir: str = "default", seed: int = 100000) 
     return {"episodes": episodes, "s_per_episode": (time.perf_counter() - start) / episodes}
 
 
+def bench_vector_env(
+    num_envs: int, steps: int, seed: int = 0, scenario: str | None = None
+) -> dict[str, Any]:
+    """Aggregate env steps/s of the batched vector env of ``num_envs`` envs over ``steps``
+    vector steps (item 5); ``scenario``: a stored scene set instead of fresh recordings."""
+    from counterscene_env.envs.vector import CounterSceneVectorEnv
+
+    # What gymnasium.make_vec("CounterScene-v0", num_envs=N, config=...) makes.
+    venv = CounterSceneVectorEnv(
+        num_envs, config=None if scenario is None else {"scenario": scenario}
+    )
+    venv.action_space.seed(seed)
+    start = time.perf_counter()
+    venv.reset(seed=seed)
+    reset_s = time.perf_counter() - start
+    start, ends = time.perf_counter(), 0
+    for _ in range(steps):
+        _, _, terminated, truncated, _ = venv.step(venv.action_space.sample())
+        ends += int((terminated | truncated).sum())
+    seconds = time.perf_counter() - start
+    venv.close()
+    return {
+        "num_envs": num_envs,
+        "vector_steps": steps,
+        "episode_ends": ends,
+        "first_reset_s": reset_s,
+        "steps_per_s": num_envs * steps / seconds,
+    }
+
+
+def _stored_vector_runs(sizes: tuple[int, ...], steps: int, seed: int) -> dict[str, Any]:
+    """The vector env on stored scenes (what a training run reads, ``agents/ppo_ego.py``):
+    up to ``STORED_SCENES`` intersection scenes generated into a temporary dataset first (timed
+    apart), so that resets load a scene instead of recording one."""
+    import tempfile
+
+    from counterscene_env.scene.datagen import generate_dataset
+
+    if not sizes:
+        return {}
+    with tempfile.TemporaryDirectory() as tmp:
+        start = time.perf_counter()
+        scenes = min(STORED_SCENES, max(sizes))
+        generate_dataset(tmp, "intersection", scenes, seed=seed, progress=False)
+        generate_s = time.perf_counter() - start
+        runs = {str(n): bench_vector_env(n, steps, seed, scenario=tmp) for n in sizes}
+    return {"scenes": scenes, "generate_s": generate_s, "runs": runs}
+
+
 def peak_rss_mb() -> float:
     """Peak resident set size of this process so far [MB] (Linux reports KiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -142,6 +198,8 @@ def run_bench(
     model_runs: int = 20,
     seed: int = 0,
     model_dir: str = "default",
+    vector_envs: tuple[int, ...] = (4, 16, 64),
+    vector_steps: int = 50,
 ) -> dict[str, Any]:
     """Every figure of the module docstring, in one process; the JSON of ``bench --json``.
 
@@ -152,6 +210,8 @@ def run_bench(
         seed: seeds the actions and resets.
         model_dir: the world model of the stress run and the model figures (the env uses
             its config's model, the shipped one by default).
+        vector_envs: the vector env's sizes (empty: skip item 5).
+        vector_steps: vector steps per size.
     """
     from counterscene_env.world_model import load_model
     from counterscene_env.world_model.bench import bench_model, matmul_peak_gflops
@@ -159,6 +219,8 @@ def run_bench(
     anchor = bench_highway_env(steps, seed)
     env = bench_env_and_replans(steps, seed)
     stress = bench_stress(episodes, model_dir)
+    vector = {str(n): bench_vector_env(n, vector_steps, seed) for n in vector_envs}
+    stored = _stored_vector_runs(vector_envs, vector_steps, seed)
     model = bench_model(load_model(model_dir), runs=model_runs)
     peak = matmul_peak_gflops()
     times = sorted(env.pop("replan_s"))
@@ -176,12 +238,25 @@ def run_bench(
             "count": len(times),
         },
         "stress_s_per_episode": stress["s_per_episode"],
+        "vector_env_steps_per_s": {n: v["steps_per_s"] for n, v in vector.items()},
+        "vector_env_vs_highway_env": {
+            n: v["steps_per_s"] / anchor["steps_per_s"] for n, v in vector.items()
+        },
+        "vector_env_stored_scenes_steps_per_s": {
+            n: v["steps_per_s"] for n, v in stored.get("runs", {}).items()
+        },
         "flops_per_replan": flops["warm"],
         "flops_per_cold_replan": flops["cold"],
         "achieved_gflops": achieved,
         "peak_gflops": peak,
         "peak_fraction": achieved / peak,
         "peak_rss_mb": peak_rss_mb(),
-        "runs": {"anchor": anchor, "env": env, "stress": stress},
+        "runs": {
+            "anchor": anchor,
+            "env": env,
+            "stress": stress,
+            "vector": vector,
+            "vector_stored_scenes": stored,
+        },
         "model": model,
     }

@@ -79,8 +79,8 @@ def test_mismatched_policy_spaces_named_in_the_error(highway_policy):
 def test_ppo_ego_recipe_trains_saves_and_evaluates(tmp_path):
     done = run(
         "agents/ppo_ego.py",
-        "--scenario", "merge", "--total-timesteps", "16", "--n-steps", "16",
-        "--batch-size", "8", "--n-epochs", "1", "--num-envs", "1", "--eval-episodes", "1",
+        "--scenario", "merge", "--total-timesteps", "16", "--n-steps", "8",
+        "--batch-size", "8", "--n-epochs", "1", "--num-envs", "2", "--eval-episodes", "1",
         "--duration", "1", "--out", str(tmp_path),
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]

@@ -315,8 +315,11 @@ def test_full_bench_json_has_every_figure(capsys):
     """``counterscene bench --json``: the anchor, the env, replans, stress and RSS in one run."""
     capsys.readouterr()
     argv = ["bench", "--steps", "12", "--episodes", "1", "--runs", "1", "--json"]
+    argv += ["--vector-envs", "2", "--vector-steps", "2"]
     assert main(argv) == 0
     r = json.loads(capsys.readouterr().out)
+    assert set(r["vector_env_steps_per_s"]) == set(r["vector_env_stored_scenes_steps_per_s"])
+    assert r["vector_env_steps_per_s"]["2"] > 0
     assert r["highway_env_steps_per_s"] > 0 and r["env_steps_per_s"] > 0
     assert r["env_vs_highway_env"] == pytest.approx(
         r["env_steps_per_s"] / r["highway_env_steps_per_s"]
@@ -326,3 +329,5 @@ def test_full_bench_json_has_every_figure(capsys):
     assert r["stress_s_per_episode"] > 0 and r["peak_rss_mb"] > 100
     assert main(["bench", "--steps", "0"]) == 1  # refused, named
     assert "--steps" in capsys.readouterr().err
+    assert main(["bench", "--vector-envs", "4,x"]) == 1
+    assert "--vector-envs" in capsys.readouterr().err

@@ -284,6 +284,15 @@ def add_bench(sub) -> None:
     be.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
     be.add_argument("--steps", type=int, default=300, help="env steps of each env (default 300)")
     be.add_argument("--episodes", type=int, default=4, help="stress episodes (default 4)")
+    be.add_argument(
+        "--vector-envs",
+        default="4,16,64",
+        help="sizes of the batched vector env to time, comma-separated (default 4,16,64; "
+        "'' to skip)",
+    )
+    be.add_argument(
+        "--vector-steps", type=int, default=50, help="vector steps of each size (default 50)"
+    )
     add_json_flag(be)
     be.set_defaults(func=_cmd_bench)
 
@@ -330,12 +339,27 @@ def _full_bench(args: argparse.Namespace) -> int:
 
     from counterscene_env.bench import run_bench
 
-    for flag in ("steps", "episodes", "runs"):
+    for flag in ("steps", "episodes", "runs", "vector_steps"):
         if getattr(args, flag) < 1:
-            raise ValueError(f"--{flag} must be >= 1, got {getattr(args, flag)}")
+            raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+    try:
+        sizes = tuple(int(n) for n in args.vector_envs.split(",") if n.strip())
+    except ValueError:
+        raise ValueError(
+            f"--vector-envs must be comma-separated ints, got {args.vector_envs!r}"
+        ) from None
+    if any(n < 1 for n in sizes):
+        raise ValueError(f"--vector-envs sizes must be >= 1, got {args.vector_envs!r}")
     if args.threads:
         torch.set_num_threads(args.threads)
-    r = run_bench(args.steps, args.episodes, args.runs, model_dir=args.model)
+    r = run_bench(
+        args.steps,
+        args.episodes,
+        args.runs,
+        model_dir=args.model,
+        vector_envs=sizes,
+        vector_steps=args.vector_steps,
+    )
     if args.json:
         print(json.dumps(json_safe(r)))
         return 0
@@ -360,6 +384,20 @@ def _full_bench(args: argparse.Namespace) -> int:
         f"  stress (intersection, IDM, full guidance): {r['stress_s_per_episode']:.2f} s per "
         f"episode over {args.episodes}"
     )
+    anchor = r["highway_env_steps_per_s"]
+    stored = r["runs"]["vector_stored_scenes"]
+    for label, runs in [
+        ("fresh scenes", r["runs"]["vector"]),
+        ("stored scenes", stored.get("runs", {})),
+    ]:
+        for n, v in runs.items():
+            print(
+                f"  vector env, {n} envs, {label}: {v['steps_per_s']:.1f} env steps/s in total "
+                f"= {v['steps_per_s'] / anchor:.2f}x highway-env ({v['vector_steps']} vector "
+                f"steps, {v['episode_ends']} episode ends; first reset {v['first_reset_s']:.1f} s)"
+            )
+    if stored:
+        print(f"    ({stored['scenes']} stored scenes generated in {stored['generate_s']:.1f} s)")
     m = r["model"]
     print(
         f"  model sampling call alone: median {1000 * m['latency_median_s']:.0f} ms "

@@ -8,12 +8,16 @@ default (:data:`SIM_KEYS`; one source, docs/design.md, "Configuration").
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping
 from typing import Any
 
 from counterscene_env.config import check_bool, check_int, check_real, defaults, describe_value
 from counterscene_env.envs.spaces import KINEMATIC_FEATURES
+from counterscene_env.scene.sources import SceneSource
 from counterscene_env.sim.config import SimConfig
+from counterscene_env.sim.memory import check_replan_memory
+from counterscene_env.world_model.checkpoint import shared_model
 
 #: Keys of highway-env's base config that mean nothing here (the traffic is the world model).
 UNUSED_BASE_KEYS = ("other_vehicles_type",)
@@ -97,6 +101,40 @@ _BOOL_KEYS = (
 _REWARD_KEYS = ("collision_reward", "off_road_reward", "hard_braking_reward", "high_speed_reward")
 #: The scenes' step: the env simulates at exactly this frequency [Hz].
 SIMULATION_FREQUENCY = 10
+
+
+def prepare(
+    current: Mapping[str, Any],
+    update: Mapping | None,
+    valid: Mapping[str, Any],
+    source: SceneSource | None,
+    env: Any = None,
+) -> tuple[dict, SceneSource]:
+    """The checked config that ``update`` would give on top of ``current`` (of an env whose
+    config keys are ``valid``), and its scene source (``source`` while the scenario stays).
+    Checks types and ranges (:func:`validate`, the observation and action types built on a
+    scratch copy of ``env``), and that a replan fits in memory.
+
+    Raises:
+        TypeError, ValueError: naming the key; nothing is changed.
+    """
+    if update is None:
+        update = {}
+    if not isinstance(update, Mapping):
+        raise TypeError(f"config must be a dict of config keys, got {update!r}")
+    unknown = sorted(set(update) - set(valid), key=str)
+    if unknown:
+        raise ValueError(f"unknown CounterScene config keys {unknown}; valid keys: {sorted(valid)}")
+    # A copy: later changes to the caller's (nested) dicts do not reach the env.
+    candidate = {**current, **copy.deepcopy(dict(update))}
+    validate(candidate, env)
+    if source is None or candidate["scenario"] != current["scenario"]:
+        source = SceneSource(candidate["scenario"])  # raises on an unknown scenario
+    model = shared_model(candidate["model"])
+    sim = SimConfig.from_mapping(sim_settings(candidate))
+    windows = max(sim.max_windows, candidate["controlled_vehicles"])
+    check_replan_memory(model.config, sim.num_samples, windows, sim.memory_limit_gb)
+    return candidate, source
 
 
 def validate(config: Mapping[str, Any], env: Any = None) -> None:

@@ -25,6 +25,8 @@ from highway_env.envs.common.graphics import EnvViewer
 from highway_env.vehicle.graphics import VehicleGraphics
 from highway_env.vehicle.kinematics import Vehicle
 
+from counterscene_env.sim.state import Episode
+
 EGO_COLOR = VehicleGraphics.EGO_COLOR
 CRASHED_COLOR = VehicleGraphics.RED
 PLAN_COLOR = ADVERSARY_COLOR = (200, 40, 220)
@@ -46,6 +48,17 @@ class EpisodeView:
     ego_hit: tuple[bool, ...]
     adversaries: frozenset[int]
     targets: tuple[tuple[np.ndarray | None, np.ndarray], ...]
+
+
+def view_of(episode: Episode, ego_hit: Sequence[bool]) -> EpisodeView:
+    """The view of a closed-loop episode: each ego's hit flag, the adversaries, and each
+    selected adversary's remaining plan and conflict point."""
+    targets = []
+    for selection in episode.selections:
+        conflict = selection.conflict
+        if conflict is not None:
+            targets.append((episode.remaining_plan(conflict.agent), conflict.conflict_point))
+    return EpisodeView(tuple(ego_hit), frozenset(episode.adversaries), tuple(targets))
 
 
 class Viewable(Protocol):

@@ -11,18 +11,14 @@ docstring of :class:`CounterSceneEnv` and ``docs/environment.md``.
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-from highway_env import utils
 from highway_env.envs.common.abstract import AbstractEnv
 from highway_env.envs.common.observation import KinematicObservation
-from highway_env.road.road import Road
-from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from counterscene_env import metrics
@@ -30,11 +26,13 @@ from counterscene_env.config import check_int
 from counterscene_env.envs.config import (
     UNUSED_BASE_KEYS,
     counterscene_defaults,
+    prepare,
     sim_settings,
-    validate,
 )
 from counterscene_env.envs.egos import pick_egos
-from counterscene_env.envs.render import CounterSceneViewer, EpisodeView
+from counterscene_env.envs.mirror import Mirror, build_mirror, sync_mirror
+from counterscene_env.envs.outcome import ends_episode, reward_terms, step_info, weighted_reward
+from counterscene_env.envs.render import CounterSceneViewer, EpisodeView, view_of
 from counterscene_env.envs.spaces import (
     LANE_FREE_FEATURES,
     RowCappedKinematics,
@@ -45,7 +43,7 @@ from counterscene_env.envs.spaces import (
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import SceneSource
 from counterscene_env.sim import ClosedLoop, SimConfig
-from counterscene_env.sim.memory import check_replan_memory
+from counterscene_env.sim.state import Episode
 from counterscene_env.world_model.checkpoint import shared_model
 
 
@@ -121,15 +119,24 @@ class CounterSceneEnv(AbstractEnv):
                 f"got {render_mode!r}"
             )
         self.loop: ClosedLoop | None = None
+        #: This env's episode in ``loop`` (0 unless a vector env shares one loop, :meth:`share`).
+        self.slot = 0
+        self.shared = False
         self.scene: Scene | None = None
         self.egos: list[int] = []
+        self.mirror: Mirror | None = None  # highway-env's road and vehicles of the episode
         self.traffic: dict[int, Vehicle] = {}  # scene row -> its highway-env vehicle (not egos)
         self._frames: list[list[dict]] = []
+        self._frames_left = 0
         self._ended: list[bool] = []
         self._source: SceneSource | None = None
         self._reset_options: dict = {}
         self._failure: str | None = None  # why the env needs reset() (an unexpected failure)
+        # highway-env's __init__ ends with a reset(); ours waits for the user's (Gymnasium
+        # requires one before step), which saves a scene recording per env made.
+        self._constructing = True
         super().__init__(config, render_mode)
+        self._constructing = False
 
     def update_metadata(self, video_real_time_ratio: int = 1) -> None:
         """This instance's ``render_fps``: one frame per policy step (per simulation step
@@ -158,29 +165,15 @@ class CounterSceneEnv(AbstractEnv):
         super().configure(candidate)
         self._source = source
 
+    def check_config(self, config: Mapping | None) -> SimConfig:
+        """Raise as ``configure(config)`` would, changing nothing; the closed-loop settings
+        it would give."""
+        candidate, _ = self._prepare(config)
+        return SimConfig.from_mapping(sim_settings(candidate))
+
     def _prepare(self, config: Mapping | None) -> tuple[dict, SceneSource]:
         """The checked config that ``config``'s updates would give, and its scene source."""
-        if config is None:
-            config = {}
-        if not isinstance(config, Mapping):
-            raise TypeError(f"config must be a dict of config keys, got {config!r}")
-        valid = set(self.default_config())
-        unknown = sorted(set(config) - valid, key=str)
-        if unknown:
-            raise ValueError(
-                f"unknown CounterScene config keys {unknown}; valid keys: {sorted(valid)}"
-            )
-        # A copy: later changes to the caller's (nested) dicts do not reach the env.
-        candidate = {**self.config, **copy.deepcopy(dict(config))}
-        validate(candidate, self)
-        source = self._source
-        if source is None or candidate["scenario"] != self.config["scenario"]:
-            source = SceneSource(candidate["scenario"])  # raises on an unknown scenario
-        model = shared_model(candidate["model"])
-        sim = SimConfig.from_mapping(sim_settings(candidate))
-        windows = max(sim.max_windows, candidate["controlled_vehicles"])
-        check_replan_memory(model.config, sim.num_samples, windows, sim.memory_limit_gb)
-        return candidate, source
+        return prepare(self.config, config, self.default_config(), self._source, self)
 
     def define_spaces(self) -> None:
         """highway-env's spaces, with the ``Kinematics`` box bounded to [-1, 1] when every
@@ -208,6 +201,18 @@ class CounterSceneEnv(AbstractEnv):
     def sim_config(self) -> SimConfig:
         return SimConfig.from_mapping(sim_settings(self.config))
 
+    def share(self, loop: ClosedLoop, slot: int) -> None:
+        """Run this env's episodes in slot ``slot`` of ``loop``, a closed loop shared with
+        other envs (the vector env, ``envs/vector.py``: one world-model call per replan for
+        all of them). ``loop`` must have this env's model and closed-loop settings; the
+        episode starts at the next ``reset``."""
+        self.loop, self.slot, self.shared = loop, int(slot), True
+
+    @property
+    def episode(self) -> Episode:
+        """This env's current closed-loop episode (a public record of ``sim/``)."""
+        return self.loop.episodes[self.slot]
+
     # ------------------------------------------------------------------ episode
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict]:
         """Start an episode (highway-env's ``reset``: its ``_reset`` builds the episode).
@@ -219,6 +224,12 @@ class CounterSceneEnv(AbstractEnv):
         meets the same traffic randomness. Other keys are ignored (PettingZoo's API test sends
         some). Bad input is refused before anything changes.
         """
+        if self._constructing:
+            # Stand-in egos (no road) give highway-env's per-ego spaces their length.
+            n = self.config["controlled_vehicles"]
+            self.controlled_vehicles = [Vehicle(None, np.zeros(2)) for _ in range(n)]
+            self.define_spaces()
+            return None, {}
         options = dict(options or {})
         if seed is not None:
             check_int("seed", seed, ge=0)
@@ -246,61 +257,75 @@ class CounterSceneEnv(AbstractEnv):
         egos = pick_egos(scene, config["controlled_vehicles"])
         model = shared_model(config["model"])
         sim = self.sim_config
+        if self.shared and (self.loop.model is not model or self.loop.config != sim):
+            raise ValueError(
+                "this env shares its closed loop (a vector env): its model and settings "
+                "cannot change at reset"
+            )
         if self.loop is None or self.loop.model is not model or self.loop.config != sim:
             self.loop = ClosedLoop(model, sim)
         seed = self._reset_options.get("episode_seed")
         if seed is None:
             seed = int(self.np_random.integers(2**31))
-        self.loop.reset([scene], [int(seed)], [egos])
+        if self.shared:
+            self.loop.start(self.slot, scene, int(seed), egos)
+        else:
+            self.loop.reset([scene], [int(seed)], [egos])
         self.scene, self.egos = scene, egos
-        self._frames = [[dict(i) for i in self.loop.infos(0)]]
+        self._frames = [[dict(i) for i in self.loop.infos(self.slot)]]
         self._ended = [False] * len(egos)
 
-        t = scene.current_index
-        self.road = Road(
-            network=scene.road.network,
-            vehicles=[],
-            np_random=self.np_random,
+        self.mirror = build_mirror(
+            scene,
+            egos,
+            self.action_type.vehicle_class,
+            self.np_random,
             record_history=config["show_trajectories"],
         )
+        self.road = self.mirror.road
         self.road.neighbour_vehicles_connected_lanes = config["neighbour_vehicles_connected_lanes"]
-        vehicle_class = self.action_type.vehicle_class
-        self.controlled_vehicles = []
-        for e in egos:
-            v = vehicle_class(
-                self.road,
-                scene.positions[e, t].copy(),
-                float(scene.yaws[e, t]),
-                float(scene.speeds[e, t]),
-            )
-            v.LENGTH, v.WIDTH = (float(x) for x in scene.extents[e])
-            if isinstance(v, ControlledVehicle):  # lane-following action types: the logged route
-                last = np.flatnonzero(scene.valid[e])[-1]
-                goal = scene.road.network.get_closest_lane_index(
-                    scene.positions[e, last], scene.yaws[e, last]
-                )
-                v.plan_route_to(goal[1])
-            self.controlled_vehicles.append(v)
-        self.traffic = {}
-        for i in range(scene.num_agents):
-            if i in egos:
-                continue
-            v = Vehicle(self.road, scene.positions[i, t].copy(), float(scene.yaws[i, t]), 0.0)
-            v.LENGTH, v.WIDTH = (float(x) for x in scene.extents[i])
-            self.traffic[i] = v
+        self.controlled_vehicles = self.mirror.egos
+        self.traffic = self.mirror.traffic
         self._sync_road()
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         """highway-env's step, after the action is checked: a refused action (wrong type,
         shape, NaN, not in a discrete space) raises and changes nothing."""
+        action = self.check_step(action)
+        try:
+            self.begin_step(action)
+            self._run_frames()
+            result = self.end_step(action)
+        except Exception as exc:
+            self._fail("step", exc)
+        if self.render_mode == "human":
+            self.render()
+        return result
+
+    # highway-env's step in three parts, public so that a vector env (envs/vector.py) checks
+    # every env's action, then runs the frames of all its envs with one closed-loop step each.
+    def check_step(self, action: Any) -> Any:
+        """Raise unless ``step(action)`` can run (changes nothing); the action as stepped."""
         self._check_running()
         if isinstance(self.action_space, spaces.Tuple) and isinstance(action, list):
             action = tuple(action)  # one action per ego, as highway-env's MultiAgentAction
         check_action(self.action_space, action)
-        try:
-            return super().step(action)
-        except Exception as exc:
-            self._fail("step", exc)
+        return action
+
+    def begin_step(self, action: Any) -> None:
+        """Apply a checked action and start the policy step's frames."""
+        self.time += 1 / self.config["policy_frequency"]
+        if not self.config["manual_control"]:
+            self.action_type.act(as_highway_action(action))
+        self.begin_frames()
+
+    def end_step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
+        """The policy step's result once its frames are done (highway-env's ``step``)."""
+        obs = self.observation_type.observe()
+        reward = self._reward(action)
+        terminated = self._is_terminated()
+        truncated = self._is_truncated()
+        return obs, reward, terminated, truncated, self._info(obs, action)
 
     def step_egos(self, actions: Mapping[int, Any]) -> Any:
         """One policy step with an action per ego (ego index -> action, already checked);
@@ -321,9 +346,9 @@ class CounterSceneEnv(AbstractEnv):
         """Raise unless a step can run (``every_ego``: and no ego's episode has ended)."""
         if self._failure is not None:
             raise RuntimeError(f"{self._failure}: the episode cannot go on, call reset()")
-        if self.loop is None:
+        if self.loop is None or self.slot >= len(self.loop.episodes):
             raise RuntimeError("call reset() before step()")
-        if self.loop.done.all() or (every_ego and any(self._ended)):
+        if self.episode.done or (every_ego and any(self._ended)):
             raise RuntimeError("the episode is over (terminated or truncated): call reset()")
 
     def _fail(self, call: str, exc: Exception) -> None:
@@ -337,42 +362,55 @@ class CounterSceneEnv(AbstractEnv):
         """``simulation_frequency / policy_frequency`` closed-loop steps with one action."""
         if action is not None and not self.config["manual_control"]:
             self.action_type.act(as_highway_action(action))
-        frames = self.config["simulation_frequency"] // self.config["policy_frequency"]
-        self._frames = []
-        dt = 1 / self.config["simulation_frequency"]
-        for frame in range(frames):
-            states = np.empty((1, len(self.egos), 4))
-            for k, v in enumerate(self.controlled_vehicles):
-                v.act()  # lane-following vehicles recompute their low-level controls
-                v.step(dt)
-                states[0, k] = (*v.position, v.heading, v.speed)
-            self.loop.step(ego_states=states)
-            self._frames.append([dict(i) for i in self.loop.infos(0)])
-            self._sync_road()
-            self.steps += 1
-            for k, v in enumerate(self.controlled_vehicles):
-                if not v.crashed and self._ego_ended(k):
-                    v.crashed = True  # done: it brakes to a stop where it is (highway-env)
-            if self.loop.done.all() or self._all_ended():
+        self.begin_frames()
+        self._run_frames()
+
+    def _run_frames(self) -> None:
+        """The policy step's frames, this env's episode alone."""
+        B, E = len(self.loop.episodes), len(self.egos)
+        only = np.arange(B) == self.slot
+        while True:
+            states = np.full((B, E, 4), np.nan)
+            states[self.slot] = self.advance_egos()
+            self.loop.step(ego_states=states, only=only)
+            if self.end_frame():
                 break
-            if frame < frames - 1:
-                self._automatic_rendering()
+            self._automatic_rendering()
         self.enable_auto_render = False
 
+    # The three steps of one policy step's simulation frames, public so that a vector env
+    # (envs/vector.py) runs the frames of all its envs with one closed-loop step each.
+    def begin_frames(self) -> None:
+        """Start a policy step's simulation frames (after the action is applied)."""
+        self._frames = []
+        self._frames_left = self.config["simulation_frequency"] // self.config["policy_frequency"]
+
+    def advance_egos(self) -> np.ndarray:
+        """Step every ego's highway-env vehicle by one frame; ``[E, 4]`` their new states
+        (x m, y m, yaw rad, speed m/s), for ``ClosedLoop.step(ego_states=...)``."""
+        dt = 1 / self.config["simulation_frequency"]
+        states = np.empty((len(self.egos), 4))
+        for k, v in enumerate(self.controlled_vehicles):
+            v.act()  # lane-following vehicles recompute their low-level controls
+            v.step(dt)
+            states[k] = (*v.position, v.heading, v.speed)
+        return states
+
+    def end_frame(self) -> bool:
+        """Take in the closed loop's step of this env's episode; True when the policy step's
+        frames are over (all simulated, the episode done, or every ego ended)."""
+        self._frames.append([dict(i) for i in self.loop.infos(self.slot)])
+        self._sync_road()
+        self.steps += 1
+        self._frames_left -= 1
+        for k, v in enumerate(self.controlled_vehicles):
+            if not v.crashed and self._ego_ended(k):
+                v.crashed = True  # done: it brakes to a stop where it is (highway-env)
+        return self._frames_left <= 0 or self.episode.done or self._all_ended()
+
     def _sync_road(self) -> None:
-        """Write the closed loop's state into highway-env's road (for observations and the
-        viewer): the egos and every agent present now."""
-        state = self.loop.state(0)
-        present = []
-        for i, v in self.traffic.items():
-            if not state.valid[i]:
-                continue
-            v.position = np.array(state.positions[i], dtype=np.float64)
-            v.heading, v.speed = float(state.yaws[i]), float(state.speeds[i])
-            if self._needs_lanes:
-                v.on_state_update()  # its lane, for lane-based features (costly on big maps)
-            present.append(v)
-        self.road.vehicles = [*self.controlled_vehicles, *present]
+        """Write the closed loop's state into highway-env's road (observations, viewer)."""
+        sync_mirror(self.mirror, self.loop.state(self.slot), lanes=self._needs_lanes)
 
     def _all_ended(self) -> bool:
         """Every ego is done: the rest of the policy step would simulate no one's decision.
@@ -383,36 +421,16 @@ class CounterSceneEnv(AbstractEnv):
     # ------------------------------------------------------------------ per ego
     def ego_info(self, k: int = 0) -> dict:
         """Ego ``k``'s info over the last policy step (module docstring)."""
-        frames = [f[k] for f in self._frames]
-        info = dict(frames[-1])
-        for key in ("collision", "hard_braking", "off_road"):
-            info[key] = any(f[key] for f in frames)
-        hits = [f["collided_with"] for f in frames if f["collided_with"] is not None]
-        info["collided_with"] = hits[0] if hits else None
-        info["min_ttc"] = min(f["min_ttc"] for f in frames)
-        info["scenario_id"] = self.scene.scenario_id
-        return info
+        return step_info([f[k] for f in self._frames], self.scene.scenario_id)
 
     def ego_rewards(self, k: int = 0) -> dict[str, float]:
-        info = self.ego_info(k)
-        speed = utils.lmap(info["ego_speed"], self.config["reward_speed_range"], [0, 1])
-        return {
-            "collision_reward": float(info["collision"]),
-            "off_road_reward": float(info["off_road"]),
-            "hard_braking_reward": float(info["hard_braking"]),
-            "high_speed_reward": float(np.clip(speed, 0.0, 1.0)),
-        }
+        return reward_terms(self.ego_info(k), self.config["reward_speed_range"])
 
     def ego_reward(self, k: int = 0) -> float:
-        return float(sum(self.config[name] * r for name, r in self.ego_rewards(k).items()))
+        return weighted_reward(self.ego_rewards(k), self.config)
 
     def _ego_ended(self, k: int) -> bool:
-        info = self.ego_info(k)
-        c = self.config
-        return bool(
-            (c["terminate_on_collision"] and info["collision"])
-            or (c["terminate_on_off_road"] and info["off_road"])
-        )
+        return ends_episode(self.ego_info(k), self.config)
 
     def ego_terminated(self, k: int = 0) -> bool:
         """Ego ``k`` collided or left the road (as configured) in the last policy step."""
@@ -425,16 +443,16 @@ class CounterSceneEnv(AbstractEnv):
         return ended
 
     def ego_truncated(self, k: int = 0) -> bool:
-        return bool(self.loop.done.all()) and not self._ended[k] and not self._ego_ended(k)
+        return self.episode.done and not self._ended[k] and not self._ego_ended(k)
 
     def episode_metrics(self, k: int = 0) -> dict:
         """Ego ``k``'s metric summary of the episode so far (metrics.evaluate_scene)."""
-        sim = self.loop.scene(0)
+        sim = self.loop.scene(self.slot)
         e = self.egos[k]
         if e != sim.ego_index:
             sim = sim.replace(ego_index=e)
         factual = self.scene.time_slice(0, sim.num_steps).replace(ego_index=e)
-        adversary = self.loop.selection(0, k).conflict
+        adversary = self.loop.selection(self.slot, k).conflict
         return metrics.evaluate_scene(
             sim, factual, adversary=None if adversary is None else adversary.agent
         )
@@ -450,30 +468,24 @@ class CounterSceneEnv(AbstractEnv):
         return any([self.ego_terminated(k) for k in range(len(self.egos))])
 
     def _is_truncated(self) -> bool:
-        return bool(self.loop.done.all()) and not any(self._ended)
+        return self.episode.done and not any(self._ended)
 
     def _info(self, obs: Any, action: Any = None) -> dict:
         info = self.ego_info(0)
         info["rewards"] = self.ego_rewards(0)
         info["speed"] = float(self.vehicle.speed)
         info["crashed"] = bool(self.vehicle.crashed or info["collision"])
-        if self.steps and (any(self._ended) or self.loop.done.all()):
+        if self.steps and (any(self._ended) or self.episode.done):
             info["metrics"] = self.episode_metrics(0)
         return info
 
     def episode_view(self) -> EpisodeView:
         """What the viewer draws on top of highway-env's frame (``envs/render.py``)."""
-        ep = self.loop.episodes[0]
-        targets = []
-        for selection in ep.selections:
-            conflict = selection.conflict
-            if conflict is not None:
-                targets.append((ep.remaining_plan(conflict.agent), conflict.conflict_point))
-        hit = [
+        hits = [
             v.crashed or self.ego_info(k)["collision"]
             for k, v in enumerate(self.controlled_vehicles)
         ]
-        return EpisodeView(tuple(hit), frozenset(ep.adversaries), tuple(targets))
+        return view_of(self.episode, hits)
 
     # ------------------------------------------------------------------ rendering
     def render(self) -> np.ndarray | None:

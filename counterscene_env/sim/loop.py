@@ -131,6 +131,31 @@ class ClosedLoop:
             ep.records.append([self._info(ep, k, replanned=False) for k in range(len(ep.egos))])
         return [ep.records[-1][0] for ep in self.episodes]
 
+    def start(self, b: int, scene: Scene, seed: int, egos: Sequence[int] | None = None) -> dict:
+        """Start a fresh episode in slot ``b`` while the others go on (a vector env's
+        autoreset); ``b == len(episodes)`` adds a slot. Same arguments as :meth:`reset` for one
+        episode; it must have as many egos as the others.
+
+        Returns:
+            The new episode's first ego's info dict at step ``now``.
+        """
+        if not 0 <= b <= len(self.episodes):
+            raise ValueError(f"slot {b} out of range: the loop has {len(self.episodes)} episodes")
+        egos = [scene.ego_index] if egos is None else [int(r) for r in egos]
+        others = [ep for k, ep in enumerate(self.episodes) if k != b]
+        if others and len(egos) != len(others[0].egos):
+            raise ValueError(f"{len(egos)} egos, but the other episodes have {len(others[0].egos)}")
+        c = self.config
+        windows = (len(others) + 1) * max(c.max_windows, len(egos))
+        check_replan_memory(self.model.config, c.num_samples, windows, c.memory_limit_gb)
+        ep = self._start(scene, int(seed), egos)
+        ep.records.append([self._info(ep, k, replanned=False) for k in range(len(ep.egos))])
+        if b == len(self.episodes):
+            self.episodes.append(ep)
+        else:
+            self.episodes[b] = ep
+        return ep.records[-1][0]
+
     @property
     def num_egos(self) -> int:
         """Egos per episode."""
@@ -207,9 +232,12 @@ class ClosedLoop:
         return self.episodes[b].state()
 
     def step(
-        self, actions: np.ndarray | None = None, ego_states: np.ndarray | None = None
+        self,
+        actions: np.ndarray | None = None,
+        ego_states: np.ndarray | None = None,
+        only: Sequence[bool] | np.ndarray | None = None,
     ) -> list[dict]:
-        """Advance every unfinished episode by one step.
+        """Advance every unfinished episode by one step (those of ``only``, if given).
 
         Args:
             actions: ``[B, 2]`` ego actions, (acceleration m/s^2, steering rad), through the
@@ -217,6 +245,8 @@ class ClosedLoop:
             ego_states: ``[B, 4]`` (x m, y m, yaw rad, speed m/s) written as the ego's next
                 state instead (log replay, or an ego stepped by the caller); ``[B, E, 4]``
                 with E egos. A row of NaN uses ``actions`` for that ego.
+            only: ``[B]`` bool: the episodes to advance (a vector env whose other episodes
+                have ended their policy step); their rows alone need actions or states.
 
         Returns:
             The first ego's info dict of each episode (module docstring; finished episodes
@@ -228,7 +258,12 @@ class ClosedLoop:
         E = self.num_egos
         actions = _check_rows(actions, B, E, 2, "actions")
         ego_states = _check_rows(ego_states, B, E, 4, "ego_states", allow_nan_rows=True)
-        active = [b for b, ep in enumerate(self.episodes) if not ep.done]
+        if only is None:
+            only = np.ones(B, bool)
+        only = np.asarray(only, bool)
+        if only.shape != (B,):
+            raise ValueError(f"only must have shape ({B},), got {only.shape}")
+        active = [b for b, ep in enumerate(self.episodes) if only[b] and not ep.done]
         # Every ego's input is checked before anything moves: a bad call changes nothing.
         states = {}
         for b in active:

@@ -180,11 +180,17 @@ class Denoiser(nn.Module):
         nn.init.constant_(self.edge_mlp[-1].bias, 3.0)
 
     def step_embedding(self, timesteps: torch.Tensor) -> torch.Tensor:
-        """Sinusoidal embedding of the diffusion step ``[B]`` -> ``[B, d]``."""
+        """Sinusoidal embedding of the diffusion step ``[B]`` -> ``[B, d]``.
+
+        Each distinct step is embedded once: a sampler's call has one step for all its
+        scenes, so the MLP sees one row whatever the batch size. (A matrix product's rounding
+        can depend on its row count when that is small, and a scene's result must not depend
+        on which other scenes share its call: the vector env, docs/performance.md.)"""
         half = self.cfg.d_model // 2
+        steps, index = torch.unique(timesteps, return_inverse=True)
         freq = torch.exp(-math.log(10000.0) * torch.arange(half, device=timesteps.device) / half)
-        arg = timesteps.float()[:, None] * freq[None]
-        return self.step_mlp(torch.cat([torch.sin(arg), torch.cos(arg)], -1))
+        arg = steps.float()[:, None] * freq[None]
+        return self.step_mlp(torch.cat([torch.sin(arg), torch.cos(arg)], -1))[index]
 
     def encode_context(
         self,
