@@ -66,6 +66,35 @@ def test_highway_env_policy_stress_tested_unchanged(highway_policy):
 
 
 @pytest.mark.slow
+def test_sb3_batches_in_a_vector_env_give_the_one_at_a_time_records(
+    highway_policy, generated, tmp_path, capsys
+):
+    """``--batch 3`` runs an sb3 policy's episodes 3 at a time in one vector env (one
+    world-model call per replan); the records and the summary are those of ``--batch 1``,
+    with episodes of different scenes (and so different lengths) in one batch."""
+    from counterscene_env.cli import main
+    from counterscene_env.scene.shards import save_scenes
+
+    shard = tmp_path / "scenes.npz"
+    save_scenes([generated["merge"], generated["intersection"], generated["highway"]], shard)
+    args = ["stress", "--scenario", str(shard), "--episodes", "4", "--duration", "1.5"]
+    args += ["--planner", f"sb3:{highway_policy}", "--samples", "2", "--quiet"]
+    for batch in ("1", "3"):
+        assert main([*args, "--batch", batch, "--out", str(tmp_path / batch)]) == 0
+    capsys.readouterr()
+    one, three = tmp_path / "1", tmp_path / "3"
+    metrics = [json.loads((d / "metrics.json").read_text()) for d in (one, three)]
+    assert [m["config"].pop("batch") for m in metrics] == [1, 3]
+    assert metrics[0] == metrics[1]
+    strip = ("seconds", "replan_seconds")
+    records = [
+        [{k: v for k, v in json.loads(line).items() if k not in strip} for line in lines]
+        for lines in ((d / "episodes.jsonl").read_text().splitlines() for d in (one, three))
+    ]
+    assert records[0] == records[1] and len(records[0]) == 4
+
+
+@pytest.mark.slow
 def test_mismatched_policy_spaces_named_in_the_error(highway_policy):
     done = counterscene(
         "stress", "--scenario", "merge", "--episodes", "1", "--duration", "1",

@@ -51,11 +51,11 @@ def test_chunks_are_whole_batches_at_fixed_episodes(shard, tmp_path):
     # The shard's two scenes, cycled: episode i runs scene i % 2 whichever batch it is in.
     ids = [s.scenario_id for _, scenes in chunks(config, []) for s in scenes]
     assert ids == [ids[0], ids[1]] * 3 + [ids[0]] and ids[0] != ids[1]
-    # An sb3 policy runs one episode at a time, so its batches are single episodes.
+    # An sb3 policy's batches are the same (each runs in one vector env).
     policy = tmp_path / "p.zip"
     policy.write_bytes(b"")
-    sb3 = StressConfig(shard, episodes=3, batch=3, planner=f"sb3:{policy}")
-    assert [(f, len(s)) for f, s in chunks(sb3, [])] == [(0, 1), (1, 1), (2, 1)]
+    sb3 = StressConfig(shard, episodes=3, batch=2, planner=f"sb3:{policy}")
+    assert [(f, len(s)) for f, s in chunks(sb3, [])] == [(0, 2), (2, 1)]
 
 
 @pytest.mark.slow

@@ -70,14 +70,23 @@ def add_stress(sub) -> None:
         "--batch",
         type=int,
         default=4,
-        help="episodes advanced together (4; sb3 planners run one at a time)",
+        help="episodes advanced together, one world-model call per replan (default 4)",
     )
     st.add_argument(
         "--workers",
         type=int,
-        default=1,
-        help="processes to run batches in, one torch thread each (default 1); the results "
-        "are those of the serial run",
+        help="processes to run batches in, one torch thread each (default 1; --backend ray: "
+        "batches at once, default every CPU Ray has); the results are those of the serial run",
+    )
+    st.add_argument(
+        "--backend",
+        choices=("local", "ray"),
+        default="local",
+        help="local processes (default), or Ray tasks (docs/scaling.md)",
+    )
+    st.add_argument(
+        "--address",
+        help="--backend ray: a Ray cluster's address (default: a local Ray of --workers CPUs)",
     )
     add_model_flag(st)
     add_json_flag(st, "print the summary as one JSON object (timings under 'timings')")
@@ -153,8 +162,7 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         write_timings,
     )
 
-    if args.workers < 1:
-        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    _check_backend(args)
     if args.videos < 0:
         raise ValueError(f"--videos must be >= 0, got {args.videos}")
     if args.resume and not args.out:
@@ -247,11 +255,32 @@ def _read_env_config(text: str) -> dict:
     return given
 
 
+def _check_backend(args: argparse.Namespace) -> None:
+    """``--backend``, ``--address`` and ``--workers`` fit, and Ray is installed if asked for
+    (else a RuntimeError saying how). An unset ``--workers`` is 1 locally; Ray resolves it."""
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    if args.address is not None and args.backend != "ray":
+        raise ValueError("--address applies to --backend ray only")
+    if args.backend == "ray":
+        from counterscene_env.stress.ray_backend import import_ray
+
+        import_ray()
+    elif args.workers is None:
+        args.workers = 1
+
+
 def _run_stress(args: argparse.Namespace, config, model, env_config: dict | None, log):
-    """Every episode of the run: serial, or in ``--workers`` processes."""
+    """Every episode of the run: serial, in ``--workers`` processes, or as Ray tasks."""
     from counterscene_env.stress import run_episodes, run_parallel, run_policy_episodes
 
     progress = not args.quiet
+    if args.backend == "ray":
+        from counterscene_env.stress.ray_backend import RayPool
+
+        with RayPool(args.address, args.workers) as pool:
+            args.workers = pool.workers  # what timings.json and the text report show
+            return pool.run(config, args.model, env_config, progress=progress, log=log)
     if args.workers > 1:
         return run_parallel(
             config, args.workers, args.model, env_config, progress=progress, log=log
@@ -277,7 +306,8 @@ def _stress_stopped(args: argparse.Namespace, config, log, wall: float, before: 
         msg = f"no episode had finished: nothing was written to {log.dir}"
     else:
         write_summary(log.dir, summarize(records, config))
-        write_timings(log.dir, timings(records, wall, len(records) - before, args.workers))
+        ran = len(records) - before  # (--workers is unset if Ray was stopped as it started)
+        write_timings(log.dir, timings(records, wall, ran, args.workers or 1))
         _write_report(args, videos=0)  # at once: the user is waiting; `report` adds videos
         msg = (
             f"{len(records)} of {config.episodes} episodes are in {log.dir} (metrics.json "

@@ -217,9 +217,8 @@ class CounterSceneVectorEnv(VectorEnv):
                 "reset(options={'reset_mask': mask}) before stepping (autoreset disabled)"
             )
         stepping = [i for i in range(self.num_envs) if not resetting[i]]
-        for i in stepping:  # every action is checked before any env moves
-            actions[i] = self.envs[i].check_step(actions[i])
-        self._run_frames(stepping, actions)
+        stepped = self.step_envs(stepping, [actions[i] for i in stepping])
+        results = dict(zip(stepping, stepped, strict=True))
         infos: dict = {}
         for i in range(self.num_envs):
             env = self.envs[i]
@@ -227,7 +226,7 @@ class CounterSceneVectorEnv(VectorEnv):
                 self._obs[i], info = env.reset()
                 self._rewards[i], self._terminations[i], self._truncations[i] = 0.0, False, False
             else:
-                obs, reward, terminated, truncated, info = env.end_step(actions[i])
+                obs, reward, terminated, truncated, info = results[i]
                 self._obs[i], self._rewards[i] = obs, reward
                 self._terminations[i], self._truncations[i] = terminated, truncated
                 if (terminated or truncated) and self.autoreset_mode is AutoresetMode.SAME_STEP:
@@ -245,12 +244,27 @@ class CounterSceneVectorEnv(VectorEnv):
             infos,
         )
 
+    def step_envs(self, indices: Sequence[int], actions: Sequence[Any]) -> list[tuple]:
+        """Advance only the envs ``indices`` by one policy step, each with its action (the
+        others stay as they are; no autoreset): each one's ``(obs, reward, terminated,
+        truncated, info)``. Beyond Gymnasium's API: ``counterscene stress`` finishes a batch
+        whose episodes end at different steps with it. Every action is checked before any env
+        moves (``ValueError``: nothing changes)."""
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        indices = [int(i) for i in indices]
+        if len(actions) != len(indices):
+            raise ValueError(f"{len(indices)} envs but {len(actions)} actions")
+        checked = [self.envs[i].check_step(a) for i, a in zip(indices, actions, strict=True)]
+        self._run_frames(indices, checked)
+        return [self.envs[i].end_step(a) for i, a in zip(indices, checked, strict=True)]
+
     def _run_frames(self, stepping: list[int], actions: list[Any]) -> None:
         """The frames of the envs in ``stepping``, each frame one closed-loop step for all
         of them: an env leaves when its policy step is over (its frames done, its episode
         over, or every ego ended)."""
-        for i in stepping:
-            self.envs[i].begin_step(actions[i])
+        for i, action in zip(stepping, actions, strict=True):
+            self.envs[i].begin_step(action)
         running = list(stepping)
         E = self.loop.num_egos
         while running:

@@ -9,7 +9,7 @@ its sampling noise. So every row of a comparison (guidance presets, selectors) s
 scenes and the same noise. Episodes run in batches of ``batch`` (one world-model call per
 replan for the batch); a batched call's floating-point results can depend on the batch's
 composition, so every run of a config forms the same batches, serial, parallel
-(``--workers``) or resumed, and gives the same records.
+(``--workers``), on Ray (``--backend ray``) or resumed, and gives the same records.
 
 The summary (:func:`summarize`, ``metrics.json``) is the paper's table row: ADE, FDE, ORR,
 HBR, CR for the horizon groups 1-4 s, 5-7 s, 8-10 s and per second (CR at second h counts
@@ -19,8 +19,8 @@ ego-vs-adversary collisions, mean min TTC and fallbacks. Wall-clock figures are 
 ``metrics.json``.
 
 Modules: ``config`` (:class:`StressConfig`), ``episodes`` (running batches in this process),
-``workers`` (in several), ``log`` (``episodes.jsonl`` and the other files of ``--out``),
-``summary``.
+``workers`` (in several), ``ray_backend`` (as Ray tasks), ``log`` (``episodes.jsonl`` and the
+other files of ``--out``), ``summary``.
 """
 
 from counterscene_env.stress.config import SB3_PREFIX, StressConfig, run_identity
@@ -28,11 +28,13 @@ from counterscene_env.stress.episodes import (
     BatchRunner,
     PolicyRunner,
     chunks,
+    make_runner,
     run_batch,
     run_episodes,
     run_policy_episodes,
 )
 from counterscene_env.stress.log import EpisodeLog, write_outputs, write_summary, write_timings
+from counterscene_env.stress.ray_backend import run_ray
 from counterscene_env.stress.summary import TIMING_KEYS, summarize, timings
 from counterscene_env.stress.workers import run_parallel
 
@@ -44,11 +46,13 @@ __all__ = [
     "PolicyRunner",
     "StressConfig",
     "chunks",
+    "make_runner",
     "run_batch",
     "run_episodes",
     "run_identity",
     "run_parallel",
     "run_policy_episodes",
+    "run_ray",
     "summarize",
     "timings",
     "write_outputs",

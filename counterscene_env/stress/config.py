@@ -27,8 +27,8 @@ class StressConfig:
             or ``sb3:PATH.zip``: a Stable-Baselines3 policy, run through ``CounterScene-v0``
             (:func:`~counterscene_env.stress.run_policy_episodes`).
         sim: closed-loop settings (selector, guidance, samples, ...).
-        batch: episodes advanced together (one world-model call per replan); sb3 planners
-            run one episode at a time whatever it says.
+        batch: episodes advanced together (one world-model call per replan; an sb3
+            planner's in one vector env).
     """
 
     scenario: str
@@ -63,8 +63,8 @@ class StressConfig:
 
     @property
     def episodes_per_call(self) -> int:
-        """Episodes run together: ``batch``, or 1 for an sb3 policy (one env, one episode)."""
-        return 1 if self.is_sb3 else self.batch
+        """Episodes run together: ``batch``."""
+        return self.batch
 
     def to_dict(self) -> dict:
         out = dataclasses.asdict(self)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import os
 import time
 from collections.abc import Callable, Iterator, Sequence
 
@@ -23,6 +24,7 @@ from counterscene_env.scene.sources import scenes_for
 from counterscene_env.sim import ClosedLoop
 from counterscene_env.stress.config import StressConfig
 from counterscene_env.stress.log import EpisodeLog
+from counterscene_env.world_model.checkpoint import load_model
 from counterscene_env.world_model.model import WorldModel
 
 
@@ -137,21 +139,34 @@ class BatchRunner:
 
 
 class PolicyRunner:
-    """Runs episodes of an ``sb3:PATH.zip`` planner through ``CounterScene-v0``, one at a time
-    (see :func:`run_policy_episodes`); ``runner(first, scenes)`` as :class:`BatchRunner`.
+    """Runs batches of episodes of an ``sb3:PATH.zip`` planner through ``CounterScene-v0``
+    (see :func:`run_policy_episodes`); ``runner(first, scenes)`` as :class:`BatchRunner`. A
+    batch's episodes run in one vector env (``envs/vector.py``: one world-model call per
+    replan for all of them), each exactly as in a single env of its own.
+
+    Args:
+        config: the run.
+        model: the world model's directory (``"default"``: the shipped one).
+        env_config: env-config keys on top of the policy's ``PATH.env.json`` sidecar.
+        policy: the policy's ``.zip`` (default ``config.policy_path``; a Ray worker passes
+            its local copy).
 
     Raises:
         ValueError: the policy's spaces do not match the env's (the message names both).
     """
 
     def __init__(
-        self, config: StressConfig, model: str = "default", env_config: dict | None = None
+        self,
+        config: StressConfig,
+        model: str = "default",
+        env_config: dict | None = None,
+        policy: str | os.PathLike | None = None,
     ) -> None:
         from counterscene_env.envs.single_agent import CounterSceneEnv
         from counterscene_env.planners import SB3Policy
 
         self.config = config
-        self.policy = SB3Policy(config.policy_path)
+        self.policy = SB3Policy(config.policy_path if policy is None else policy)
         settings = {
             **self.policy.env_config,
             **(env_config or {}),
@@ -161,24 +176,61 @@ class PolicyRunner:
             "terminate_on_collision": False,
             "terminate_on_off_road": False,
         }
-        self.env = CounterSceneEnv(config=settings)
-        self.policy.bind(self.env.observation_space, self.env.action_space)
+        self.settings = settings
+        probe = CounterSceneEnv(config=settings)  # checks the settings; its spaces
+        self.policy.bind(probe.observation_space, probe.action_space)
+        probe.close()
 
     def __call__(self, first: int, scenes: Sequence[Scene]) -> list[dict]:
-        return [self._episode(first + k, scene) for k, scene in enumerate(scenes)]
+        from gymnasium.vector import AutoresetMode
+        from gymnasium.vector.utils import iterate
 
-    def _episode(self, index: int, scene: Scene) -> dict:
-        seed = self.config.seed + index
+        from counterscene_env.envs.vector import CounterSceneVectorEnv
+
+        B = len(scenes)
+        seeds = [self.config.seed + first + k for k in range(B)]
         start = time.perf_counter()
-        obs, _ = self.env.reset(seed=seed, options={"scene": scene, "episode_seed": seed})
-        done = False
-        while not done:
-            obs, _, terminated, truncated, _ = self.env.step(self.policy.predict(obs))
-            done = terminated or truncated
-        return _record(self.env.loop, 0, scene, seed, time.perf_counter() - start, index)
+        venv = CounterSceneVectorEnv(B, self.settings, autoreset_mode=AutoresetMode.DISABLED)
+        obs, _ = venv.reset(seed=seeds, options={"scenes": list(scenes), "episode_seeds": seeds})
+        current = list(iterate(venv.observation_space, obs))
+        running = list(range(B))
+        while running:  # each policy decision on its own observation, as in a single env
+            results = venv.step_envs(running, [self.policy.predict(current[i]) for i in running])
+            for i, (o, _, terminated, truncated, _) in zip(running, results, strict=True):
+                current[i] = None if terminated or truncated else o
+            running = [i for i in running if current[i] is not None]
+        share = (time.perf_counter() - start) / B
+        records = [
+            _record(venv.loop, b, scene, seeds[b], share, first + b)
+            for b, scene in enumerate(scenes)
+        ]
+        venv.close()
+        return records
 
     def close(self) -> None:
-        self.env.close()
+        pass
+
+
+def make_runner(
+    config: StressConfig,
+    model: str = "default",
+    env_config: dict | None = None,
+    planner_factory: Callable[[], Planner] | None = None,
+    policy: str | os.PathLike | None = None,
+) -> BatchRunner | PolicyRunner:
+    """The serial run's runner for ``config``, built in this process (the parallel and Ray
+    runs build theirs with it, so every run of a config runs its batches alike).
+
+    Args:
+        config: the run.
+        model: the world model's directory (``"default"``: the shipped one), loaded here.
+        env_config: sb3 planners: env-config keys on top of the policy's sidecar.
+        planner_factory: a fresh planner per episode (default ``make_planner(config.planner)``).
+        policy: sb3 planners: the policy's ``.zip`` (default ``config.policy_path``).
+    """
+    if config.is_sb3:
+        return PolicyRunner(config, model, env_config, policy)
+    return BatchRunner(load_model(model), config, planner_factory)
 
 
 def drive(
@@ -296,7 +348,8 @@ def run_policy_episodes(
     The policy sees the env's highway-env observations and acts through its action type.
     Episode i runs the same scene and closed-loop seed as :func:`run_episodes` would
     (``reset(options={"scene": ..., "episode_seed": seed + i})``) and runs to its end, as the
-    other planners' do (collisions and leaving the road do not end it). The env's
+    other planners' do (collisions and leaving the road do not end it). A batch of
+    ``config.batch`` episodes runs in one vector env and gives the records of single envs. The env's
     observation and action config come from ``env_config``, else from the policy's
     ``PATH.env.json`` sidecar, else the env's defaults.
 

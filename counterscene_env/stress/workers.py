@@ -25,13 +25,7 @@ from collections.abc import Callable
 
 from counterscene_env.planners import Planner
 from counterscene_env.stress.config import StressConfig
-from counterscene_env.stress.episodes import (
-    BatchRunner,
-    PolicyRunner,
-    Progress,
-    chunks,
-    first_to_run,
-)
+from counterscene_env.stress.episodes import Progress, chunks, first_to_run, make_runner
 from counterscene_env.stress.log import EpisodeLog
 
 #: Batches handed out per worker ahead of the results: enough to keep every worker busy while
@@ -183,7 +177,7 @@ def _serve(spec: tuple, tasks, results) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops the workers
     torch.set_num_threads(1)  # one thread per process: N workers share N cores
     try:
-        runner = _runner(*spec)
+        runner = make_runner(*spec)
     except Exception as exc:
         results.put((None, None, _failure(exc)))
         return
@@ -210,12 +204,3 @@ def _failure(exc: Exception) -> tuple[Exception | None, str]:
     except Exception:  # an exception that cannot travel: its traceback does
         return None, text
     return exc, text
-
-
-def _runner(config: StressConfig, model: str, env_config: dict | None, planner_factory):
-    """The serial run's runner for ``config``, built in this process."""
-    if config.is_sb3:
-        return PolicyRunner(config, model, env_config)
-    from counterscene_env.world_model import load_model
-
-    return BatchRunner(load_model(model), config, planner_factory)
