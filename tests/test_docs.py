@@ -1,0 +1,54 @@
+"""The documentation site's own code: the CLI reference hook and the nav (no mkdocs needed)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import re
+from pathlib import Path
+
+from counterscene_env.cli import _parser
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+
+
+def _hook():
+    path = DOCS / "hooks" / "cli_reference.py"
+    spec = importlib.util.spec_from_file_location("cli_reference", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _subparsers() -> dict[str, argparse.ArgumentParser]:
+    action = next(a for a in _parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(action.choices)
+
+
+def test_the_cli_reference_renders_every_subcommand_and_every_flag():
+    text = _hook().render()
+    subs = _subparsers()
+    assert subs, "the parser has no subcommands"
+    for name, sub in subs.items():
+        assert f"## `counterscene {name}` {{#counterscene-{name}}}" in text
+        assert f"usage: counterscene {name}" in text
+        for action in sub._actions:
+            for flag in action.option_strings:
+                if flag not in ("-h", "--help"):
+                    assert flag in text, f"{name}: {flag} missing from the reference"
+
+
+def test_the_hook_fills_only_the_page_with_the_marker():
+    hook = _hook()
+    assert hook.MARKER in (DOCS / "cli.md").read_text()
+    page = hook.on_page_markdown(f"# CLI\n\n{hook.MARKER}\n", page=None, config=None, files=None)
+    assert hook.MARKER not in page and "counterscene stress" in page
+    assert hook.on_page_markdown("# other\n", page=None, config=None, files=None) == "# other\n"
+
+
+def test_every_docs_page_is_in_the_nav():
+    nav = (ROOT / "mkdocs.yml").read_text()
+    listed = set(re.findall(r":\s*([\w/]+\.md)\s*$", nav, flags=re.MULTILINE))
+    pages = {p.relative_to(DOCS).as_posix() for p in DOCS.rglob("*.md")}
+    assert pages - listed == set(), "pages missing from the nav in mkdocs.yml"
