@@ -151,11 +151,15 @@ def test_bad_input_is_refused_and_changes_nothing():
         ({"scenes": [crash_scene()]}, "list of 2"),
         ({"reset_mask": np.array([1, 0])}, "bool"),
         ({"config": {"duration": -1.0}}, "duration"),
+        ({"scenes": [None, "merge"]}, r"scenes'\]\[1\]"),
+        ({"episode_seeds": [1, -1]}, r"episode_seeds'\]\[1\]"),
     ]:
         with pytest.raises((ValueError, TypeError), match=match):
             venv.reset(seed=0, options=options)
     with pytest.raises(ValueError, match="one entry per env"):
         venv.reset(seed=[1, 2, 3])
+    with pytest.raises(ValueError, match=r"seed\[1\]"):
+        venv.reset(seed=[1, -2])
     with pytest.raises(ValueError, match="num_envs"):
         CounterSceneVectorEnv(0)
     assert [env.episode.t for env in venv.envs] == steps

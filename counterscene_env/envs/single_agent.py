@@ -97,6 +97,8 @@ class CounterSceneEnv(AbstractEnv):
     and reward keys, and every ``SimConfig`` field. Unknown keys raise; every value is checked
     by type and range before it is applied (``TypeError`` / ``ValueError`` naming the key),
     and a refused ``configure``, ``reset`` or ``step`` leaves the env as it was.
+    ``gymnasium.make_vec("CounterScene-v0", num_envs=N)`` gives N of them in one closed loop
+    (``envs/vector.py``).
 
     **Version history.** v0: first release.
     """

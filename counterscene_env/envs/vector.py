@@ -36,8 +36,11 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array, iterate
 
+from counterscene_env.config import check_int
+from counterscene_env.envs.egos import pick_egos
 from counterscene_env.envs.single_agent import CounterSceneEnv
-from counterscene_env.sim import ClosedLoop
+from counterscene_env.scene.core import Scene
+from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.world_model.checkpoint import shared_model
 
 #: Config keys fixed for a vector env's life: its spaces and its shared closed loop.
@@ -130,18 +133,7 @@ class CounterSceneVectorEnv(VectorEnv):
         options = dict(options or {})
         mask = self._mask(options.pop("reset_mask", None))
         per_env = {k: self._per_env(options.pop(k, None), k) for k in ("scenes", "episode_seeds")}
-        update = options.get("config") or {}
-        fixed = sorted(set(FIXED_KEYS) & set(update))
-        if fixed:
-            raise ValueError(
-                f"reset cannot change {fixed} of a vector env (its spaces and closed loop are "
-                "fixed): make a new one with gymnasium.make_vec"
-            )
-        for key in ("scene", "episode_seed"):
-            if key in options:
-                raise ValueError(f"a vector env takes options[{key + 's'!r}], one per env")
-        # Every env has the same config: one check for all, before anything changes.
-        sim = self.envs[0].check_config(update)
+        sim = self._check_reset(seeds, mask, per_env, options)
         if sim != self.loop.config:
             if not mask.all():
                 raise ValueError(
@@ -162,6 +154,38 @@ class CounterSceneVectorEnv(VectorEnv):
         self._rewards[mask] = 0.0
         self._started = True
         return self._batch_obs(), infos
+
+    def _check_reset(
+        self, seeds: list, mask: np.ndarray, per_env: dict[str, list], options: dict
+    ) -> SimConfig:
+        """Raise unless the reset can run for every env of ``mask`` (changes nothing); the
+        closed-loop settings after its config update."""
+        update = options.get("config") or {}
+        fixed = sorted(set(FIXED_KEYS) & set(update))
+        if fixed:
+            raise ValueError(
+                f"reset cannot change {fixed} of a vector env (its spaces and closed loop are "
+                "fixed): make a new one with gymnasium.make_vec"
+            )
+        for key in ("scene", "episode_seed"):
+            if key in options:
+                raise ValueError(f"a vector env takes options[{key + 's'!r}], one per env")
+        # Every env has the same config: one check for all.
+        sim = self.envs[0].check_config(update)
+        egos = {**self.config, **update}["controlled_vehicles"]
+        for i in np.flatnonzero(mask):
+            if seeds[i] is not None:
+                check_int(f"seed[{i}]", seeds[i], ge=0)
+            if per_env["episode_seeds"][i] is not None:
+                check_int(f"options['episode_seeds'][{i}]", per_env["episode_seeds"][i], ge=0)
+            scene = per_env["scenes"][i]
+            if scene is not None and not isinstance(scene, Scene):
+                raise TypeError(
+                    f"options['scenes'][{i}] must be a Scene or None, got {type(scene).__name__}"
+                )
+            if scene is not None:
+                pick_egos(scene, egos)
+        return sim
 
     def _seeds(self, seed: int | Sequence[int | None] | None) -> list[int | None]:
         if seed is None:
