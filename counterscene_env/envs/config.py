@@ -13,7 +13,9 @@ from collections.abc import Mapping
 from typing import Any
 
 from counterscene_env.config import check_bool, check_int, check_real, defaults, describe_value
+from counterscene_env.envs.egos import pick_egos
 from counterscene_env.envs.spaces import KINEMATIC_FEATURES
+from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import SceneSource
 from counterscene_env.sim.config import SimConfig
 from counterscene_env.sim.memory import check_replan_memory
@@ -135,6 +137,26 @@ def prepare(
     windows = max(sim.max_windows, candidate["controlled_vehicles"])
     check_replan_memory(model.config, sim.num_samples, windows, sim.memory_limit_gb)
     return candidate, source
+
+
+def check_episode_inputs(
+    seed: Any,
+    scene: Any,
+    episode_seed: Any,
+    egos: int,
+    names: tuple[str, str, str] = ("seed", "options['scene']", "options['episode_seed']"),
+) -> None:
+    """Raise unless a reset's own inputs are sound: a seed and an episode seed (None or an
+    int >= 0) and a scene (None, or a :class:`Scene` with ``egos`` egos to pick). ``names``
+    are theirs in the error messages."""
+    if seed is not None:
+        check_int(names[0], seed, ge=0)
+    if episode_seed is not None:
+        check_int(names[2], episode_seed, ge=0)
+    if scene is not None:
+        if not isinstance(scene, Scene):
+            raise TypeError(f"{names[1]} must be a Scene, got {type(scene).__name__}")
+        pick_egos(scene, egos)
 
 
 def validate(config: Mapping[str, Any], env: Any = None) -> None:

@@ -18,7 +18,7 @@ envs. Wrap it in SB3's ``VecMonitor`` for episode returns in the training log::
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -89,13 +89,6 @@ class SB3VecEnv(VecEnv):
     # ------------------------------------------------------------------ SB3's env access
     def _envs(self, indices: Any) -> list:
         return [self.venv.envs[i] for i in self._get_indices(indices)]
-
-    def _get_indices(self, indices: Any) -> Iterable[int]:
-        if indices is None:
-            return range(self.num_envs)
-        if isinstance(indices, int):
-            return [indices]
-        return indices
 
     def get_attr(self, attr_name: str, indices: Any = None) -> list[Any]:
         return [getattr(env, attr_name) for env in self._envs(indices)]

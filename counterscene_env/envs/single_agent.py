@@ -22,9 +22,9 @@ from highway_env.envs.common.observation import KinematicObservation
 from highway_env.vehicle.kinematics import Vehicle
 
 from counterscene_env import metrics
-from counterscene_env.config import check_int
 from counterscene_env.envs.config import (
     UNUSED_BASE_KEYS,
+    check_episode_inputs,
     counterscene_defaults,
     prepare,
     sim_settings,
@@ -233,16 +233,9 @@ class CounterSceneEnv(AbstractEnv):
             self.define_spaces()
             return None, {}
         options = dict(options or {})
-        if seed is not None:
-            check_int("seed", seed, ge=0)
-        if options.get("episode_seed") is not None:
-            check_int("options['episode_seed']", options["episode_seed"], ge=0)
-        scene = options.get("scene")
-        if scene is not None and not isinstance(scene, Scene):
-            raise TypeError(f"options['scene'] must be a Scene, got {type(scene).__name__}")
         candidate, source = self._prepare(options.pop("config", None))
-        if scene is not None:
-            pick_egos(scene, candidate["controlled_vehicles"])  # raises before any change
+        egos = candidate["controlled_vehicles"]
+        check_episode_inputs(seed, options.get("scene"), options.get("episode_seed"), egos)
         super().configure(candidate)
         self._source, self._reset_options, self._failure = source, options, None
         try:
@@ -259,20 +252,20 @@ class CounterSceneEnv(AbstractEnv):
         egos = pick_egos(scene, config["controlled_vehicles"])
         model = shared_model(config["model"])
         sim = self.sim_config
-        if self.shared and (self.loop.model is not model or self.loop.config != sim):
-            raise ValueError(
-                "this env shares its closed loop (a vector env): its model and settings "
-                "cannot change at reset"
-            )
         if self.loop is None or self.loop.model is not model or self.loop.config != sim:
+            if self.shared:
+                raise ValueError(
+                    "this env shares its closed loop (a vector env): its model and settings "
+                    "cannot change at reset"
+                )
             self.loop = ClosedLoop(model, sim)
         seed = self._reset_options.get("episode_seed")
         if seed is None:
             seed = int(self.np_random.integers(2**31))
         if self.shared:
-            self.loop.start(self.slot, scene, int(seed), egos)
+            self.loop.start(self.slot, scene, seed, egos)
         else:
-            self.loop.reset([scene], [int(seed)], [egos])
+            self.loop.reset([scene], [seed], [egos])
         self.scene, self.egos = scene, egos
         self._frames = [[dict(i) for i in self.loop.infos(self.slot)]]
         self._ended = [False] * len(egos)
@@ -296,7 +289,7 @@ class CounterSceneEnv(AbstractEnv):
         action = self.check_step(action)
         try:
             self.begin_step(action)
-            self._run_frames()
+            self._simulate()
             result = self.end_step(action)
         except Exception as exc:
             self._fail("step", exc)
@@ -339,7 +332,8 @@ class CounterSceneEnv(AbstractEnv):
             for k, action in actions.items():
                 types[k].act(as_highway_action(action))
             self.time += 1 / self.config["policy_frequency"]
-            self._simulate(None)
+            self.begin_frames()
+            self._simulate()
             return self.observation_type.observe()
         except Exception as exc:
             self._fail("step", exc)
@@ -361,14 +355,10 @@ class CounterSceneEnv(AbstractEnv):
             raise RuntimeError(f"{self._failure}: the episode cannot go on, call reset()") from exc
 
     def _simulate(self, action: Any = None) -> None:
-        """``simulation_frequency / policy_frequency`` closed-loop steps with one action."""
+        """highway-env's template method: the policy step's frames (after ``begin_frames``),
+        this env's episode alone; ``action``, if given, is applied first."""
         if action is not None and not self.config["manual_control"]:
             self.action_type.act(as_highway_action(action))
-        self.begin_frames()
-        self._run_frames()
-
-    def _run_frames(self) -> None:
-        """The policy step's frames, this env's episode alone."""
         B, E = len(self.loop.episodes), len(self.egos)
         only = np.arange(B) == self.slot
         while True:

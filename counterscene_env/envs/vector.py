@@ -36,10 +36,8 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array, iterate
 
-from counterscene_env.config import check_int
-from counterscene_env.envs.egos import pick_egos
+from counterscene_env.envs.config import check_episode_inputs
 from counterscene_env.envs.single_agent import CounterSceneEnv
-from counterscene_env.scene.core import Scene
 from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.world_model.checkpoint import shared_model
 
@@ -174,17 +172,9 @@ class CounterSceneVectorEnv(VectorEnv):
         sim = self.envs[0].check_config(update)
         egos = {**self.config, **update}["controlled_vehicles"]
         for i in np.flatnonzero(mask):
-            if seeds[i] is not None:
-                check_int(f"seed[{i}]", seeds[i], ge=0)
-            if per_env["episode_seeds"][i] is not None:
-                check_int(f"options['episode_seeds'][{i}]", per_env["episode_seeds"][i], ge=0)
-            scene = per_env["scenes"][i]
-            if scene is not None and not isinstance(scene, Scene):
-                raise TypeError(
-                    f"options['scenes'][{i}] must be a Scene or None, got {type(scene).__name__}"
-                )
-            if scene is not None:
-                pick_egos(scene, egos)
+            names = (f"seed[{i}]", f"options['scenes'][{i}]", f"options['episode_seeds'][{i}]")
+            scene, episode_seed = per_env["scenes"][i], per_env["episode_seeds"][i]
+            check_episode_inputs(seeds[i], scene, episode_seed, egos, names)
         return sim
 
     def _seeds(self, seed: int | Sequence[int | None] | None) -> list[int | None]:

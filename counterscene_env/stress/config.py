@@ -61,11 +61,6 @@ class StressConfig:
         """The ``.zip`` of an ``sb3:PATH.zip`` planner."""
         return Path(self.planner.removeprefix(SB3_PREFIX))
 
-    @property
-    def episodes_per_call(self) -> int:
-        """Episodes run together: ``batch``."""
-        return self.batch
-
     def to_dict(self) -> dict:
         out = dataclasses.asdict(self)
         out["sim"] = dataclasses.asdict(self.sim)

@@ -42,18 +42,18 @@ def first_to_run(config: StressConfig, done: Sequence[dict]) -> int:
     the start of the batch ``len(done)`` falls in, or ``config.episodes`` when all are done."""
     if len(done) >= config.episodes:
         return config.episodes
-    return len(done) - len(done) % config.episodes_per_call
+    return len(done) - len(done) % config.batch
 
 
 def chunks(config: StressConfig, done: Sequence[dict]) -> Iterator[tuple[int, list[Scene]]]:
     """The batches still to run after the ``done`` episodes, in order: ``(first episode
-    index, its scenes)``, each of ``config.episodes_per_call`` episodes (the last may be
+    index, its scenes)``, each of ``config.batch`` episodes (the last may be
     shorter). Batch boundaries fall at the same episodes in every run of a config, so a batch
     cut short by a kill (some of its episodes recorded) is run again whole: the episodes still
     missing then come from a batch of the uninterrupted run's composition (the recorded ones
     are kept, :class:`Progress`). Never more scenes are drawn than the batches need."""
     index = first_to_run(config, done)
-    size = config.episodes_per_call
+    size = config.batch
     scenes = _remaining_scenes(config, done[:index])
     while index < config.episodes:
         chunk = list(itertools.islice(scenes, min(size, config.episodes - index)))

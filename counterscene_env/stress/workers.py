@@ -77,7 +77,7 @@ def run_parallel(
     ctx = mp.get_context("spawn")
     tasks, results = ctx.Queue(), ctx.Queue()
     start = first_to_run(config, tally.records)
-    remaining = -(-(config.episodes - start) // config.episodes_per_call)  # batches
+    remaining = -(-(config.episodes - start) // config.batch)  # batches
     procs = [
         ctx.Process(target=_serve, args=(spec, tasks, results), name=f"stress-worker-{k}")
         for k in range(min(workers, remaining))

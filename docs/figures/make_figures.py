@@ -58,10 +58,10 @@ EGO, ADVERSARY, TRAFFIC = "tab:red", "tab:purple", "tab:blue"
 DPI = 100
 
 
-def view_centre(scene) -> np.ndarray:
-    """``[2]`` m, world frame: the causal adversary's conflict point (the ego if none)."""
+def causal_selection(scene):
+    """The causal selection on the scene's factual future (as the closed loop's first)."""
     positions, valid, speeds, start = factual_future(scene)
-    selection = select_adversary(
+    return select_adversary(
         "causal",
         positions,
         valid,
@@ -71,6 +71,11 @@ def view_centre(scene) -> np.ndarray:
         eligible=scene.agent_types == "vehicle",
         start_step=start,
     )
+
+
+def view_centre(scene) -> np.ndarray:
+    """``[2]`` m, world frame: the causal adversary's conflict point (the ego if none)."""
+    selection = causal_selection(scene)
     if selection.conflict is None:
         return scene.positions[scene.ego_index, scene.current_index]
     return selection.conflict.conflict_point
@@ -182,16 +187,7 @@ def candidate_label(scene, conflict, failures: list[str]) -> str:
 def selection_figure(scene) -> None:
     positions, valid, speeds, start = factual_future(scene)
     vehicles = scene.agent_types == "vehicle"
-    selection = select_adversary(
-        "causal",
-        positions,
-        valid,
-        scene.ego_index,
-        speeds=speeds,
-        extents=scene.extents,
-        eligible=vehicles,
-        start_step=start,
-    )
+    selection = causal_selection(scene)
     tracks = check_tracks(
         positions,
         valid,
