@@ -137,6 +137,14 @@ class PredictionTarget(Choice):
     EPSILON = "epsilon"
 
 
+class WindowCentres(Choice):
+    """Whom training windows are centred on: the scene's ego only, or every vehicle in turn."""
+
+    __label__ = "centres"
+    EGO = "ego"
+    AGENTS = "agents"
+
+
 class LaneAnchors(Choice):
     """Where a model window's lanes are centred: on the ego, or on every window agent."""
 

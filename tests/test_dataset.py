@@ -50,7 +50,7 @@ def test_window_shapes_and_dtypes(generated):
 
 def test_ego_frame_padding_and_validity():
     ds = SceneWindowDataset([_northbound_scene()], CFG)
-    assert [t0 for _, t0 in ds.index] == [10, 15, 20, 25, 30, 35]
+    assert [t0 for _, t0, _ in ds.index] == [10, 15, 20, 25, 30, 35]
     w = ds.window(0, 10)
     # The ego is at the origin heading +x at t0; 1 s earlier it was 10 m behind.
     np.testing.assert_allclose(w["history"][0, -1], [0, 0, 0, 10], atol=1e-5)
@@ -136,9 +136,29 @@ def test_short_logs_give_windows_with_masked_futures_when_asked():
     short = _northbound_scene().time_slice(0, 25)
     assert len(SceneWindowDataset([short], CFG)) == 0
     ds = SceneWindowDataset([short], CFG, min_future_steps=10)
-    starts = [t for _, t in ds.index]
+    starts = [t for _, t, _ in ds.index]
     assert starts == [10]  # t0 = 10 leaves 14 future steps; 15 would leave only 9
     item = ds[0]
     assert item["future_valid"][0, :14].all() and not item["future_valid"][0, 14:].any()
     with pytest.raises(ValueError, match="min_future_steps"):
         SceneWindowDataset([short], CFG, min_future_steps=0)
+
+
+def test_agent_centred_windows_put_each_vehicle_at_the_origin():
+    """``centres="agents"``: every vehicle with 1 s of history and the future asked for centres
+    a window, in its own frame; the ego-only index is a subset."""
+    scene = _northbound_scene()
+    ego_only = SceneWindowDataset([scene], CFG)
+    ds = SceneWindowDataset([scene], CFG, centres="agents")
+    assert set(ego_only.index) < set(ds.index)
+    # Agent 2 appears at step 20: it centres windows only from t0 = 29 on (10 valid frames).
+    assert min(t for _, t, r in ds.index if r == 2) == 30
+    assert {r for _, t, r in ds.index if t == 10} == {0, 1, 3}
+    row = ds.index.index((0, 30, 2))
+    item = ds[row]
+    np.testing.assert_allclose(item["history"][0, -1].numpy(), [0, 0, 0, 10], atol=1e-5)
+    # The ego (5 m north, 3 m west of agent 2 heading north) is 5 m ahead, 3 m to the left.
+    ego = int(np.flatnonzero(item["rows"].numpy() == 0)[0])
+    np.testing.assert_allclose(item["history"][ego, -1, :2].numpy(), [5, 3], atol=1e-5)
+    with pytest.raises(ValueError, match="centres"):
+        SceneWindowDataset([scene], CFG, centres="everyone")

@@ -58,7 +58,7 @@ def scene_batch(tiny, generated):
     scenes = list(generated.values())
     ds = SceneWindowDataset(scenes, tiny.window_config())
     first = {}
-    for row, (s, _) in enumerate(ds.index):
+    for row, (s, _, _) in enumerate(ds.index):
         first.setdefault(s, row)
     return default_collate([ds[r] for r in first.values()])
 
@@ -500,3 +500,17 @@ def test_agent_centric_map_starts_silent_and_then_steers(scene_batch):
         for block in local.denoiser.blocks:
             block.local.out.weight.normal_(0.0, 0.5, generator=torch.Generator().manual_seed(1))
     assert not torch.allclose(sample(local), sample(plain))
+
+
+def test_weighted_batches_fill_each_source_to_its_share():
+    """``_weighted_batches``: source shares follow the weights whatever the window counts,
+    and step k's draw is the same whether the run starts at 0 or resumes at k."""
+    from counterscene_env.world_model.train import _weighted_batches
+
+    sources = torch.tensor([0] * 900 + [1] * 100)
+    draws = _weighted_batches(sources, (1.0, 3.0), 64, seed=0, start_step=0)
+    rows = torch.cat([next(draws) for _ in range(100)])
+    share = float((sources[rows] == 1).float().mean())
+    assert abs(share - 0.75) < 0.03  # 6400 draws: the standard error is 0.005
+    again = _weighted_batches(sources, (1.0, 3.0), 64, seed=0, start_step=99)
+    assert torch.equal(next(again), rows[-64:])

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
 from conftest import crash_scene
@@ -170,9 +171,41 @@ def test_evaluate_model_json(trained, dataset, capsys):
     assert list(by_speed) == ["parked", "slow", "moving"]
     assert sum(b["agents"] for b in by_speed.values()) == result["agents"]
     for block in by_speed.values():
-        assert set(block) == {"agents", "model", "constant_velocity", "log_offroad_rate"}
+        assert (
+            set(block)
+            == set(result["by_speed"]["moving"])
+            >= {
+                "agents",
+                "model",
+                "constant_velocity",
+                "log_offroad_rate",
+                "ade_ratio_to_cv",
+                "ade_ratio_to_cv_ci95",
+            }
+        )
         assert set(block["model"]) == set(model) and set(block["constant_velocity"]) == set(cv)
     assert by_speed["moving"]["agents"] > 0  # generated merge traffic drives
+
+
+def test_evaluate_model_every_second_with_intervals(trained, dataset, capsys):
+    """``--every 1``: every second of each 13 s log with 3 s of history and 3 s of future is a
+    start (t0 = 30, 40, ..., 100: 8 per scene); every figure has a 95 % interval around it, and
+    the ratio to constant velocity is the ratio of the two ADEs."""
+    argv = ["evaluate-model", "--data", str(dataset), "--model", str(trained), "--json"]
+    capsys.readouterr()
+    assert main([*argv, "--samples", "2", "--quiet", "--every", "1", "--bootstrap", "200"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert (result["scenes"], result["windows"], result["every_s"]) == (3, 24, 1.0)
+    model, cv = result["model"], result["constant_velocity"]
+    for block in (model, cv):
+        lo, hi = block["ci95"]["ade"]["3s"]
+        assert lo <= block["ade"]["3s"] <= hi
+    ratio = result["ade_ratio_to_cv"]["3s"]
+    assert ratio == pytest.approx(model["ade"]["3s"] / cv["ade"]["3s"])
+    lo, hi = result["ade_ratio_to_cv_ci95"]["3s"]
+    assert lo <= ratio <= hi
+    assert main([*argv, "--quiet", "--every", "0"]) == 1
+    assert "--every must be > 0" in capsys.readouterr().err
 
 
 def test_evaluate_model_speed_bins_and_short_logs(trained, tmp_path, capsys):
@@ -196,10 +229,30 @@ def test_evaluate_model_speed_bins_and_short_logs(trained, tmp_path, capsys):
         # Constant velocity keeps the parked car exactly where the log has it.
         assert by_speed["parked"]["constant_velocity"]["ade"][h] < 1e-3
     assert by_speed["slow"]["model"]["ade"]["1s"] is None  # an empty bin has no figure
+    # The parked car is logged for 1 s after "now" only: whether it stays put 3 s later is
+    # unknown, so it is not counted "still".
+    assert result["still"]["agents"] == 0 and result["still"]["model"]["fde"]["3s"] is None
     # The text report prints one ADE block per bin.
     assert main([*argv, "--samples", "1"]) == 0
     out = capsys.readouterr().out
     assert "1 skipped" in out and "parked (1 agents)" in out and "moving (2 agents)" in out
+
+
+def test_evaluate_model_still_agents(trained, tmp_path, capsys):
+    """A car parked now and logged in place 3 s later is "still": its FDE at 3 s is reported
+    on its own (constant velocity keeps it exactly there)."""
+    scene = crash_scene(60)
+    positions = scene.positions.copy()
+    positions[2] = [64.0, 0.0]  # parked for the whole log
+    scene = scene.replace(positions=positions, valid=np.ones_like(scene.valid), current_index=10)
+    shard = save_scenes([scene], tmp_path / "still.npz")
+    argv = ["evaluate-model", "--data", str(shard), "--model", str(trained), "--quiet"]
+    capsys.readouterr()
+    assert main([*argv, "--samples", "1", "--json"]) == 0
+    still = json.loads(capsys.readouterr().out)["still"]
+    assert still["agents"] == 1
+    assert still["constant_velocity"]["fde"]["3s"] < 1e-3
+    assert still["model"]["fde"]["3s"] >= 0
 
 
 def test_evaluate_model_commonroad_flag(capsys, tmp_path):
@@ -331,3 +384,42 @@ def test_full_bench_json_has_every_figure(capsys):
     assert "--steps" in capsys.readouterr().err
     assert main(["bench", "--vector-envs", "4,x"]) == 1
     assert "--vector-envs" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_weighted_agent_centred_mixture_trains_records_and_resumes(dataset, tmp_path):
+    """Two sources, the second agent-centred, mixed 1:3 per batch: the record says so, and a
+    resumed run equals an uninterrupted one (the weighted draw is seeded by the step)."""
+    extra = ["--agent-centred", str(dataset), "--data-weights", "1", "3"]
+
+    def run(out, steps):
+        argv = ["train", "--data", str(dataset.parent / "ego"), str(dataset), "--out", str(out)]
+        argv += ["--steps", str(steps), "--checkpoint-every", "2", "--batch-size", "4"]
+        return main([*argv, *TINY, "--quiet", *extra])
+
+    (dataset.parent / "ego").mkdir(exist_ok=True)
+    for f in dataset.iterdir():  # the same scenes, read ego-centred
+        target = dataset.parent / "ego" / f.name
+        if not target.exists():
+            target.symlink_to(f)
+    assert run(tmp_path / "a", 2) == 0 and run(tmp_path / "a", 4) == 0
+    assert run(tmp_path / "b", 4) == 0
+    for x, y in zip(_log(tmp_path / "a"), _log(tmp_path / "b"), strict=True):
+        x, y = json.loads(x), json.loads(y)
+        x.pop("wall_time_s"), y.pop("wall_time_s")
+        assert x == y
+    info = load_model(tmp_path / "b").training_info
+    ego_windows, agent_windows = info["train_windows_per_source"]
+    assert agent_windows > ego_windows > 0  # every merge vehicle centres windows, not the ego only
+    assert info["data_weights"] == [1.0, 3.0] and info["agent_centred"] == [str(dataset)]
+
+
+def test_train_mixture_settings_are_checked(dataset, tmp_path, capsys):
+    base = ["train", "--data", str(dataset), "--out", str(tmp_path / "o"), *TINY, "--quiet"]
+    assert main([*base, "--data-weights", "1", "2"]) == 1
+    assert "data_weights has 2 values for 1 data entries" in capsys.readouterr().err
+    assert main([*base, "--data-weights", "-1"]) == 1
+    assert "data_weights must be >= 0" in capsys.readouterr().err
+    assert main([*base, "--agent-centred", str(tmp_path)]) == 1
+    assert "agent_centred names datasets not in data" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

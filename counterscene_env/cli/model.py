@@ -71,6 +71,22 @@ def add_train(sub) -> None:
         help="future steps a window needs inside its log (default: the whole horizon); fewer "
         "trains on the ends of short real logs, the missing steps masked",
     )
+    tr.add_argument(
+        "--agent-centred",
+        nargs="+",
+        default=[],
+        metavar="DIR",
+        help="those --data datasets whose windows centre on every vehicle in turn, not on the "
+        "ego alone (real recordings: most of their vehicles are never the ego)",
+    )
+    tr.add_argument(
+        "--data-weights",
+        nargs="+",
+        type=float,
+        metavar="W",
+        help="share of each --data dataset in every batch, one value per dataset (default: "
+        "in proportion to its windows)",
+    )
     add_quiet_flag(tr)
     tr.set_defaults(func=_cmd_train)
 
@@ -101,6 +117,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         init=args.init,
         off_lane_weight=args.off_lane_weight,
         min_future_steps=args.min_future,
+        agent_centred=tuple(args.agent_centred),
+        data_weights=None if args.data_weights is None else tuple(args.data_weights),
     )
     record = train(cfg, progress=not args.quiet)
     print(json.dumps(json_safe(record)))
@@ -148,6 +166,19 @@ def add_evaluate_model(sub) -> None:
         type=int,
         metavar="N",
         help="Adam steps of final-step lane keeping (default: the model's; 0: the network alone)",
+    )
+    ev.add_argument(
+        "--every",
+        type=float,
+        metavar="S",
+        help="score every S seconds of each log where 3 s of history and 3 s of future exist "
+        "(default: each scene's now only)",
+    )
+    ev.add_argument(
+        "--bootstrap",
+        type=int,
+        default=1000,
+        help="scene resamples behind each 95 %% interval (default 1000; 0: none)",
     )
     add_json_flag(ev)
     add_quiet_flag(ev)
@@ -213,8 +244,20 @@ def _cmd_evaluate_model(args: argparse.Namespace) -> int:
         if args.lane_steering < 0:
             raise ValueError(f"--lane-steering must be >= 0, got {args.lane_steering}")
         model.config = model.config.replace(lane_steering=args.lane_steering)
+    if args.every is not None and not args.every > 0:
+        raise ValueError(f"--every must be > 0 s, got {args.every}")
+    if args.bootstrap < 0:
+        raise ValueError(f"--bootstrap must be >= 0, got {args.bootstrap}")
     scenes = _evaluation_scenes(args)
-    result = evaluate_model(model, scenes, args.samples, seed=0, progress=not args.quiet)
+    result = evaluate_model(
+        model,
+        scenes,
+        args.samples,
+        seed=0,
+        progress=not args.quiet,
+        every=args.every,
+        bootstrap=args.bootstrap,
+    )
     result["source"] = (
         f"{args.scenario} seeds from {args.seed}"
         if args.scenario
@@ -251,6 +294,22 @@ def _print_evaluation(result: dict) -> None:
         f"off-road: model {fmt(result['model']['offroad_rate'])}, constant velocity "
         f"{fmt(result['constant_velocity']['offroad_rate'])}, log {fmt(result['log_offroad_rate'])}"
     )
+    windows = f", {result['windows']} windows" if result.get("every_s") else ""
+    print(f"ADE / constant velocity's [95 % interval over scenes{windows}]:")
+    for name, block in [("all", result), *result["by_speed"].items()]:
+        cells = []
+        for h in hz:
+            ratio, ci = block["ade_ratio_to_cv"][h], block["ade_ratio_to_cv_ci95"][h]
+            band = f" [{fmt(ci[0])}, {fmt(ci[1])}]" if ci else ""
+            cells.append(f"{h} {fmt(ratio)}{band}")
+        print(f"  {name:8s} " + "  ".join(cells))
+    still = result["still"]
+    if still["agents"]:
+        fde3 = still["model"]["fde"].get("3s")
+        print(
+            f"still agents ({still['agents']}: parked, logged within "
+            f"{fmt(result['still_displacement_m'])} m 3 s later): model FDE at 3 s {fmt(fde3)} m"
+        )
     lo, hi = (fmt(float(e)) for e in result["speed_bins_m_s"])
     print(f"ADE [m] by speed now (parked < {lo} m/s <= slow < {hi} m/s <= moving):")
     for name, block in result["by_speed"].items():

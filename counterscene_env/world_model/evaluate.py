@@ -1,7 +1,8 @@
 """Open-loop evaluation of a world model (``counterscene evaluate-model``).
 
-For each scene, at its "now" step (``current_index``, 3 s of history), the model predicts every
-agent it sees (the ego and its nearest vehicles, ``num_agents`` within ``agent_radius``) over its
+For each scene, at its "now" step (``current_index``, 3 s of history), or with ``every`` at
+every ``every`` seconds of the log where 3 s of history and 3 s of future exist (real scenes
+are few; each start time is a window), the model predicts every agent it sees (the ego and its nearest vehicles, ``num_agents`` within ``agent_radius``) over its
 horizon, ``num_samples`` samples in one batched call. Against the log's future:
 
 - ``ade[h]``: mean displacement [m] over steps 1..h of the *first* sample, averaged over agents
@@ -22,6 +23,14 @@ Every figure is also split by the agent's speed "now" (``by_speed``, bin edges
 :data:`MOVING_SPEED`, ``"moving"`` from there on. Parked cars are easy for constant velocity and
 a large share of real logs, so the pooled figure alone hides how moving traffic is predicted.
 
+Still agents (``still``): parked now and within :data:`STILL_DISPLACEMENT` of their position 3 s
+later in the log; their FDE at 3 s says whether the model keeps a parked car parked.
+
+Intervals (``ci95`` beside each figure, ``*_ci95`` beside ratios): 95 % percentile bootstrap
+over scenes, :data:`BOOTSTRAP_RESAMPLES` resamples seeded by ``seed``. The windows of one scene
+(and the agents of one window) are correlated, so the scene is the unit resampled. Agent counts
+are agent-windows.
+
 Short logs: future frames beyond the log are invalid and simply not scored, and history before
 the log's first frame is padded by the window. A scene whose log ends at its "now" step has
 nothing to compare against: it is skipped and counted (``skipped_scenes``; ``scenes`` counts
@@ -30,6 +39,7 @@ the scenes scored).
 
 from __future__ import annotations
 
+from collections import defaultdict
 from collections.abc import Iterable
 from typing import Any
 
@@ -54,6 +64,16 @@ SPEED_BIN_EDGES = (PARKED_SPEED, MOVING_SPEED)
 #: Names of the speed bins, slowest first (``SPEED_BIN_EDGES`` separates them).
 SPEED_BINS = ("parked", "slow", "moving")
 
+#: A parked agent whose logged position 3 s later is within this of where it is now is
+#: "still" [m]: the prediction should keep it there (a parked car the model sets rolling).
+STILL_DISPLACEMENT = 0.1
+
+#: Logged future a start time needs with ``every`` [s]: the 3 s figures exist at every start.
+MIN_SCORED_FUTURE = 3.0
+
+#: Scene resamples behind each 95 % interval.
+BOOTSTRAP_RESAMPLES = 1000
+
 
 def horizons(model: WorldModel) -> dict[str, int]:
     """Horizon name -> step count: ``"1s"``, ``"2s"``, ``"3s"`` (those within the model's
@@ -73,45 +93,59 @@ def speed_bins(speed: np.ndarray) -> np.ndarray:
     return np.digitize(np.abs(speed), SPEED_BIN_EDGES)
 
 
-class _Accumulator:
-    """Sums per horizon of displacement statistics (agent-weighted) and off-road counts."""
+class _Sums:
+    """Per-scene sums ``[sum, count]`` of named figures, so that intervals can resample scenes.
 
-    def __init__(self, hz: dict[str, int]) -> None:
-        self.hz = hz
-        self.sums = {k: {h: [0.0, 0] for h in hz} for k in ("ade", "fde", "min_ade", "min_fde")}
-        self.off = [0, 0]
+    A name is ``"<group>/<who>/<key>/<horizon>"`` (``who``: ``model``, ``cv`` or ``log``);
+    ``scene`` is the scene's row, shared by its windows (start times).
+    """
 
-    def add(self, err: np.ndarray, ok: np.ndarray, off: np.ndarray) -> None:
-        """Add ``A`` agents: ``err [S, A, F]`` m, ``ok [A, F]`` bool, ``off [S, A, F]`` bool."""
-        for h, n in self.hz.items():
-            o = ok[:, :n]
-            has = o.any(-1)
-            ade = (err[:, :, :n] * o).sum(-1) / np.maximum(o.sum(-1), 1)  # [S, A]
-            self._acc("ade", h, ade[0, has])
-            self._acc("min_ade", h, ade[:, has].min(0))
-            end = ok[:, n - 1]
-            self._acc("fde", h, err[0, end, n - 1])
-            self._acc("min_fde", h, err[:, end, n - 1].min(0))
-        mask = np.broadcast_to(ok, off.shape)
-        self.off[0] += int((off & mask).sum())
-        self.off[1] += int(mask.sum())
+    def __init__(self) -> None:
+        self.sums: dict[str, dict[int, list]] = defaultdict(lambda: defaultdict(lambda: [0.0, 0]))
 
-    def _acc(self, key: str, h: str, values: np.ndarray) -> None:
-        self.sums[key][h][0] += float(values.sum())
-        self.sums[key][h][1] += int(values.size)
+    def add(self, name: str, scene: int, values: np.ndarray) -> None:
+        entry = self.sums[name][scene]
+        entry[0] += float(values.sum())
+        entry[1] += int(values.size)
 
-    def result(self, key: str) -> dict[str, float | None]:
-        return {h: (s / n if n else None) for h, (s, n) in self.sums[key].items()}
+    def count(self, name: str, scene: int, hits: int, total: int) -> None:
+        entry = self.sums[name][scene]
+        entry[0] += hits
+        entry[1] += total
+
+    def arrays(self, name: str, scenes: int) -> tuple[np.ndarray, np.ndarray]:
+        """``[scenes]`` sums and counts of ``name`` (zero for scenes without it)."""
+        s, n = np.zeros(scenes), np.zeros(scenes)
+        for i, (a, b) in self.sums.get(name, {}).items():
+            s[i], n[i] = a, b
+        return s, n
 
 
-class _Group:
-    """The sums of one set of agents (all of them, or one speed bin): model, constant velocity
-    and the log's off-road counts."""
+def _add_errors(
+    sums: _Sums, prefix: str, scene: int, hz: dict[str, int], err: np.ndarray, ok: np.ndarray
+) -> None:
+    """Add ``A`` agents' displacement errors ``err [S, A, F]`` m (valid ``ok [A, F]``) under
+    ``prefix``: ADE and FDE of the first sample, and the best of the samples (marginal)."""
+    for h, n in hz.items():
+        o = ok[:, :n]
+        has = o.any(-1)
+        ade = (err[:, :, :n] * o).sum(-1) / np.maximum(o.sum(-1), 1)  # [S, A]
+        end = ok[:, n - 1]
+        sums.add(f"{prefix}/ade/{h}", scene, ade[0, has])
+        sums.add(f"{prefix}/min_ade/{h}", scene, ade[:, has].min(0))
+        sums.add(f"{prefix}/fde/{h}", scene, err[0, end, n - 1])
+        sums.add(f"{prefix}/min_fde/{h}", scene, err[:, end, n - 1].min(0))
 
-    def __init__(self, hz: dict[str, int]) -> None:
-        self.agents = 0
-        self.ours, self.cv = _Accumulator(hz), _Accumulator(hz)
-        self.log_off = [0, 0]
+
+def start_steps(scene: Scene, history_steps: int, every: int | None, future: int) -> list[int]:
+    """The "now" steps scored in ``scene``: its ``current_index`` (``every`` None), or every
+    ``every`` steps from ``history_steps - 1`` while ``future`` logged steps follow, where the
+    ego is valid."""
+    if every is None:
+        return [scene.current_index]
+    last = scene.num_steps - 1 - future
+    ego = scene.valid[scene.ego_index]
+    return [t for t in range(history_steps - 1, last + 1, every) if ego[t]]
 
 
 def evaluate_model(
@@ -121,45 +155,77 @@ def evaluate_model(
     seed: int = 0,
     chunk: int = 8,
     progress: bool = False,
+    every: float | None = None,
+    bootstrap: int = BOOTSTRAP_RESAMPLES,
 ) -> dict[str, Any]:
-    """Evaluate ``model`` open loop on ``scenes`` (module docstring); returns the JSON summary."""
+    """Evaluate ``model`` open loop on ``scenes`` (module docstring); returns the JSON summary.
+
+    Args:
+        every: score every ``every`` seconds of each log where 3 s of history and
+            :data:`MIN_SCORED_FUTURE` of future exist (None: each scene's "now" only).
+        bootstrap: resamples of the scenes behind each 95 % interval (0: no intervals).
+    """
     given = list(scenes)
+    hist = model.config.history_steps
+    if every is None:
+        step, need = None, 1
+    else:
+        step = max(1, round(every / model.config.dt))
+        need = round(MIN_SCORED_FUTURE / model.config.dt)
+    starts = [start_steps(s, hist, step, need) for s in given]
     # A log that ends at "now" has no future to score (and no frame to predict from to).
-    scenes = [s for s in given if s.current_index + 1 < s.num_steps]
+    starts = [[t for t in ts if t + 1 < s.num_steps] for s, ts in zip(given, starts, strict=True)]
+    keep = [i for i, ts in enumerate(starts) if ts]
+    scenes = [given[i] for i in keep]
+    jobs = [(k, t) for k, i in enumerate(keep) for t in starts[i]]
     model = model.eval()
     ds = SceneWindowDataset(scenes, model.window_config())
-    hz = horizons(model)
-    groups = {name: _Group(hz) for name in ("all", *SPEED_BINS)}
+    sums = _Sums()
+    agents = defaultdict(int)
     g = torch.Generator().manual_seed(seed)
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(scenes), desc="evaluate", unit="scene", dynamic_ncols=True)
-    for lo in range(0, len(scenes), chunk):
-        idx = range(lo, min(lo + chunk, len(scenes)))
-        items = [ds.window(i, scenes[i].current_index) for i in idx]
+        bar = tqdm(total=len(jobs), desc="evaluate", unit="window", dynamic_ncols=True)
+    for lo in range(0, len(jobs), chunk):
+        part = jobs[lo : lo + chunk]
+        items = [ds.window(k, t) for k, t in part]
         batch = default_collate(
-            [{k: torch.from_numpy(np.asarray(v)) for k, v in w.items()} for w in items]
+            [{key: torch.from_numpy(np.asarray(v)) for key, v in w.items()} for w in items]
         )
-        _score_chunk(model, batch, [scenes[i].road for i in idx], num_samples, g, groups)
+        roads = [scenes[k].road for k, _ in part]
+        _score_chunk(model, batch, roads, [k for k, _ in part], num_samples, g, sums, agents)
         if bar is not None:
-            bar.update(len(idx))
+            bar.update(len(part))
     if bar is not None:
         bar.close()
-    return _summary(model, len(scenes), len(given) - len(scenes), num_samples, groups)
+    return _summary(
+        model,
+        len(scenes),
+        len(given) - len(scenes),
+        len(jobs),
+        every,
+        num_samples,
+        sums,
+        agents,
+        bootstrap,
+        seed,
+    )
 
 
 def _score_chunk(
     model: WorldModel,
     batch: dict[str, torch.Tensor],
     roads: list[RoadMap],
+    scene_rows: list[int],
     num_samples: int,
     g: torch.Generator,
-    groups: dict[str, _Group],
+    sums: _Sums,
+    agents: dict[str, int],
 ) -> None:
-    """Sample a batch of B scenes (``roads`` one per scene); add model and constant-velocity
-    errors to ``groups``."""
+    """Sample a batch of B windows (``roads`` and ``scene_rows`` one per window); add model and
+    constant-velocity errors to ``sums``."""
     F = model.config.future_steps
     with torch.no_grad():
         prediction = model.sample(batch, num_samples, g)
@@ -172,16 +238,31 @@ def _score_chunk(
     bins = speed_bins(state[..., 3])  # [B, K]
     future = batch["future"].numpy()
     valid = batch["future_valid"].numpy() & agent_ok[..., None]
+    n3 = horizons(model).get("3s", F)
     for b, road in enumerate(roads):
         keep = agent_ok[b]
         if not keep.any():
             continue
         ok = valid[b][keep]  # [A, F]
         gt = future[b][keep, :, :2]
+        # Stopped now and still 3 s later in the log: a prediction should stay put too.
+        moved = np.linalg.norm(gt[:, n3 - 1] - state[b][keep, :2], axis=-1)
+        still = (bins[b][keep] == 0) & ok[:, n3 - 1] & (moved < STILL_DISPLACEMENT)
         p = pred[b][:, keep, :, :2]  # [S, A, F, 2]
         c = cv_xy[b][keep][None]
         origin = batch["origin"][b].numpy()
-        _score_scene(road, origin, ok, (gt, p, c), bins[b][keep], groups)
+        _score_scene(
+            road,
+            origin,
+            ok,
+            (gt, p, c),
+            bins[b][keep],
+            still,
+            scene_rows[b],
+            horizons(model),
+            sums,
+            agents,
+        )
 
 
 def _score_scene(
@@ -190,9 +271,14 @@ def _score_scene(
     ok: np.ndarray,
     tracks: tuple[np.ndarray, np.ndarray, np.ndarray],
     bins: np.ndarray,
-    groups: dict[str, _Group],
+    still: np.ndarray,
+    scene: int,
+    hz: dict[str, int],
+    sums: _Sums,
+    agents: dict[str, int],
 ) -> None:
-    """Add one scene's errors [m] and off-road counts to ``"all"`` and each agent's speed bin.
+    """Add one window's errors [m] and off-road counts to ``"all"``, each agent's speed bin and
+    ``"still"``.
 
     Args:
         road: the scene's road (world frame).
@@ -201,48 +287,101 @@ def _score_scene(
         tracks: the log ``[A, F, 2]``, the model's samples ``[S, A, F, 2]`` and constant velocity
             ``[1, A, F, 2]``, m, window frame.
         bins: ``[A]`` int, each agent's speed bin (:func:`speed_bins`).
+        still: ``[A]`` bool, stopped now and still in the log 3 s later.
+        scene: the scene's row (windows of one scene are resampled together).
     """
     gt, p, c = tracks
     err_p, err_c = np.linalg.norm(p - gt, axis=-1), np.linalg.norm(c - gt, axis=-1)
-    # Off-road is judged once per scene for every agent; the groups then sum their subsets.
+    # Off-road is judged once per window for every agent; the groups then sum their subsets.
     off_p, off_c, off_log = (road.off_road(from_frame(xy, origin)) for xy in (p, c, gt))
-    members = [("all", np.ones(len(ok), bool))]
+    members = [("all", np.ones(len(ok), bool)), ("still", still)]
     members += [(name, bins == i) for i, name in enumerate(SPEED_BINS)]
     for name, sel in members:
         if not sel.any():
             continue
-        group, o = groups[name], ok[sel]
-        group.agents += int(sel.sum())
-        group.ours.add(err_p[:, sel], o, off_p[:, sel])
-        group.cv.add(err_c[:, sel], o, off_c[:, sel])
-        group.log_off[0] += int((off_log[sel] & o).sum())
-        group.log_off[1] += int(o.sum())
+        o = ok[sel]
+        agents[name] += int(sel.sum())
+        _add_errors(sums, f"{name}/model", scene, hz, err_p[:, sel], o)
+        _add_errors(sums, f"{name}/cv", scene, hz, err_c[:, sel], o)
+        for who, off in (("model", off_p), ("cv", off_c), ("log", off_log[None])):
+            mask = np.broadcast_to(o, off[:, sel].shape)
+            sums.count(f"{name}/{who}/off", scene, int((off[:, sel] & mask).sum()), int(mask.sum()))
 
 
-def _rate(pair: list[int]) -> float | None:
-    """``pair[0] / pair[1]``, or None if the denominator is 0."""
-    return pair[0] / pair[1] if pair[1] else None
+class _Estimates:
+    """Pooled figures (sum over scenes of sums / sum of counts) and their 95 % intervals from
+    a bootstrap over scenes (``resamples`` draws of the scenes with replacement, the same draws
+    for every figure, so ratios between figures are paired)."""
+
+    def __init__(self, sums: _Sums, scenes: int, resamples: int, seed: int) -> None:
+        self.sums, self.scenes = sums, scenes
+        rng = np.random.default_rng(seed)
+        self.draws = rng.integers(0, scenes, (resamples, scenes)) if resamples and scenes else None
+
+    def _stats(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        return self.sums.arrays(name, self.scenes)
+
+    def value(self, name: str) -> float | None:
+        s, n = self._stats(name)
+        return float(s.sum() / n.sum()) if n.sum() else None
+
+    def _boot(self, name: str) -> np.ndarray | None:
+        s, n = self._stats(name)
+        if self.draws is None or not n.sum():
+            return None
+        ns = n[self.draws].sum(1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(ns > 0, s[self.draws].sum(1) / ns, np.nan)
+
+    @staticmethod
+    def _interval(draws: np.ndarray | None) -> list[float] | None:
+        if draws is None or np.isnan(draws).all():
+            return None
+        return [float(x) for x in np.nanpercentile(draws, [2.5, 97.5])]
+
+    def ci(self, name: str) -> list[float] | None:
+        return self._interval(self._boot(name))
+
+    def ratio(self, num: str, den: str) -> tuple[float | None, list[float] | None]:
+        """``value(num) / value(den)`` and its interval (paired draws)."""
+        a, b = self.value(num), self.value(den)
+        if a is None or not b:
+            return None, None
+        da, db = self._boot(num), self._boot(den)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            draws = None if da is None or db is None else da / db
+        return a / b, self._interval(draws)
 
 
-def _figures(group: _Group) -> dict[str, Any]:
-    """The figures of one group of agents: ``agents``, ``model``, ``constant_velocity``,
+def _figures(est: _Estimates, group: str, hz: dict[str, int], agents: int) -> dict[str, Any]:
+    """The figures of one group of agents: ``agents``, ``model``, ``constant_velocity`` (each
+    with ``ci95``), the model's ADE and min-ADE as ratios to constant velocity's, and
     ``log_offroad_rate``."""
-    ours, cv = group.ours, group.cv
+
+    def block(who: str, keys: dict[str, str]) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        ci: dict[str, Any] = {}
+        for label, key in keys.items():
+            out[label] = {h: est.value(f"{group}/{who}/{key}/{h}") for h in hz}
+            ci[label] = {h: est.ci(f"{group}/{who}/{key}/{h}") for h in hz}
+        out["offroad_rate"] = est.value(f"{group}/{who}/off")
+        ci["offroad_rate"] = est.ci(f"{group}/{who}/off")
+        out["ci95"] = ci
+        return out
+
+    ratios: dict[str, Any] = {}
+    for label, key in (("ade", "ade"), ("min_ade_6", "min_ade")):
+        pairs = {h: est.ratio(f"{group}/model/{key}/{h}", f"{group}/cv/ade/{h}") for h in hz}
+        ratios[f"{label}_ratio_to_cv"] = {h: v for h, (v, _) in pairs.items()}
+        ratios[f"{label}_ratio_to_cv_ci95"] = {h: c for h, (_, c) in pairs.items()}
+    model_keys = {"ade": "ade", "fde": "fde", "min_ade_6": "min_ade", "min_fde_6": "min_fde"}
     return {
-        "agents": group.agents,
-        "model": {
-            "ade": ours.result("ade"),
-            "fde": ours.result("fde"),
-            "min_ade_6": ours.result("min_ade"),
-            "min_fde_6": ours.result("min_fde"),
-            "offroad_rate": _rate(ours.off),
-        },
-        "constant_velocity": {
-            "ade": cv.result("ade"),
-            "fde": cv.result("fde"),
-            "offroad_rate": _rate(cv.off),
-        },
-        "log_offroad_rate": _rate(group.log_off),
+        "agents": agents,
+        "model": block("model", model_keys),
+        "constant_velocity": block("cv", {"ade": "ade", "fde": "fde"}),
+        **ratios,
+        "log_offroad_rate": est.value(f"{group}/log/off"),
+        "log_offroad_rate_ci95": est.ci(f"{group}/log/off"),
     }
 
 
@@ -250,19 +389,31 @@ def _summary(
     model: WorldModel,
     scenes: int,
     skipped: int,
+    windows: int,
+    every: float | None,
     num_samples: int,
-    groups: dict[str, _Group],
+    sums: _Sums,
+    agents: dict[str, int],
+    bootstrap: int,
+    seed: int,
 ) -> dict[str, Any]:
     """The JSON summary of :func:`evaluate_model` from its accumulated sums: the figures of all
     agents at the top level (the layout from before the speed split), each speed bin's under
-    ``by_speed``."""
+    ``by_speed``, the still agents' under ``still``. Agent counts are agent-windows."""
+    est = _Estimates(sums, scenes, bootstrap, seed)
+    hz = horizons(model)
     return {
         "scenes": scenes,
         "skipped_scenes": skipped,
+        "windows": windows,
+        "every_s": every,
         "samples": num_samples,
         "horizon_s": model.config.horizon,
         "lane_steering": model.config.lane_steering,
-        **_figures(groups["all"]),
+        "bootstrap_resamples": bootstrap,
+        **_figures(est, "all", hz, agents["all"]),
         "speed_bins_m_s": list(SPEED_BIN_EDGES),
-        "by_speed": {name: _figures(groups[name]) for name in SPEED_BINS},
+        "by_speed": {name: _figures(est, name, hz, agents[name]) for name in SPEED_BINS},
+        "still_displacement_m": STILL_DISPLACEMENT,
+        "still": _figures(est, "still", hz, agents["still"]),
     }

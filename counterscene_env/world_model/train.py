@@ -68,6 +68,11 @@ class TrainConfig:
             it out.
         min_future_steps: future frames a window needs inside its log (None: the model's whole
             horizon); fewer admits the ends of short real logs, their missing frames masked.
+        agent_centred: those of ``data`` whose windows centre on every vehicle in turn
+            (``SceneWindowDataset(centres="agents")``: real recordings), not on the ego alone.
+        data_weights: share of each ``data`` entry in every batch (normalised; windows drawn
+            with replacement, seeded by the step). None: every window equally likely (one
+            shuffled pass per epoch), so a source's share is its share of the windows.
     """
 
     data: tuple[str, ...]
@@ -90,6 +95,21 @@ class TrainConfig:
     init: str | None = None
     off_lane_weight: float = 0.0
     min_future_steps: int | None = None
+    agent_centred: tuple[str, ...] = ()
+    data_weights: tuple[float, ...] | None = None
+
+    def __post_init__(self) -> None:
+        unknown = [d for d in self.agent_centred if d not in self.data]
+        if unknown:
+            raise ValueError(f"agent_centred names datasets not in data: {unknown}")
+        if self.data_weights is not None:
+            w = self.data_weights
+            if len(w) != len(self.data):
+                raise ValueError(
+                    f"data_weights has {len(w)} values for {len(self.data)} data entries"
+                )
+            if any(not x >= 0 for x in w) or sum(w) <= 0:
+                raise ValueError(f"data_weights must be >= 0 with a positive sum, got {list(w)}")
 
 
 # ModelConfig fields that size no tensor, so ``--init`` may change them: which lanes the window
@@ -111,16 +131,13 @@ def _windows(ds: SceneWindowDataset, rows: Sequence[int]) -> dict[str, torch.Ten
     return default_collate([ds[i] for i in rows])
 
 
-def _split(ds: SceneWindowDataset, sizes: Sequence[int], val_fraction: float):
-    """Window rows of the training and validation scenes: per dataset, the last
+def _split(ds: SceneWindowDataset, val_fraction: float) -> tuple[list[int], list[int]]:
+    """Window rows of one dataset's training and validation scenes: the last
     ``val_fraction`` of its scenes validate."""
-    val_scenes, start = set(), 0
-    for n in sizes:
-        k = max(1, round(n * val_fraction)) if val_fraction > 0 else 0
-        val_scenes.update(range(start + n - k, start + n))
-        start += n
-    train = [i for i, (s, _) in enumerate(ds.index) if s not in val_scenes]
-    val = [i for i, (s, _) in enumerate(ds.index) if s in val_scenes]
+    n = len(ds.scenes)
+    k = max(1, round(n * val_fraction)) if val_fraction > 0 else 0
+    train = [i for i, (s, _, _) in enumerate(ds.index) if s < n - k]
+    val = [i for i, (s, _, _) in enumerate(ds.index) if s >= n - k]
     return train, val
 
 
@@ -130,6 +147,22 @@ def action_statistics(model: WorldModel, batch: dict[str, torch.Tensor]) -> Norm
     a = actions[ok]
     mean, std = a.mean(0), a.std(0).clamp(min=1e-3)
     return Normalization(tuple(mean.tolist()), tuple(std.tolist()))
+
+
+def _weighted_batches(
+    sources: torch.Tensor, weights: Sequence[float], batch_size: int, seed: int, start_step: int
+) -> Iterator[torch.Tensor]:
+    """Row indices of each step, drawn with replacement so that source ``j`` (``sources [N]``
+    int) fills ``weights[j] / sum(weights)`` of a batch on average; step ``k``'s draw is seeded
+    by ``(seed, k)``, so a resumed run sees the same batches."""
+    counts = torch.bincount(sources, minlength=len(weights)).double()
+    w = torch.tensor(weights, dtype=torch.float64)
+    p = (w / counts.clamp(min=1))[sources]  # per window; an empty source gets nothing
+    step = start_step
+    while True:
+        g = torch.Generator().manual_seed(seed * 100003 + step)
+        yield torch.multinomial(p, batch_size, replacement=True, generator=g)
+        step += 1
 
 
 def _batches(n: int, batch_size: int, seed: int, start_step: int) -> Iterator[torch.Tensor]:
@@ -174,19 +207,31 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     model_cfg = get_preset(cfg.preset).replace(**dict(cfg.model_overrides))
 
     probe = WorldModel(model_cfg)
-    groups = [load_sources(d) for d in cfg.data]
-    sizes = [len(g) for g in groups]
-    ds = SceneWindowDataset(
-        [s for g in groups for s in g],
-        probe.window_config(cfg.window_stride),
-        min_future_steps=cfg.min_future_steps,
-    )
-    train_rows, val_rows = _split(ds, sizes, cfg.val_fraction)
-    if not train_rows:
+    train_parts, val_parts, sources, sizes, per_source = [], [], [], [], []
+    for j, d in enumerate(cfg.data):
+        ds = SceneWindowDataset(
+            load_sources(d),
+            probe.window_config(cfg.window_stride),
+            min_future_steps=cfg.min_future_steps,
+            centres="agents" if d in cfg.agent_centred else "ego",
+        )
+        rows, val = _split(ds, cfg.val_fraction)
+        sizes.append(len(ds.scenes))
+        per_source.append(len(rows))
+        if rows:
+            train_parts.append(_windows(ds, rows))
+            sources += [j] * len(rows)
+        if val:  # each dataset validates on an equal share of val_windows, evenly spaced
+            quota = max(1, cfg.val_windows // len(cfg.data))
+            val_parts.append(_windows(ds, val[:: max(1, len(val) // quota)][:quota]))
+    if not train_parts:
         raise ValueError(f"no training windows in {list(cfg.data)}")
-    train_data = {k: v.to(device) for k, v in _windows(ds, train_rows).items()}
-    val_rows = val_rows[:: max(1, len(val_rows) // cfg.val_windows)][: cfg.val_windows]
-    val_data = {k: v.to(device) for k, v in _windows(ds, val_rows).items()} if val_rows else None
+    train_data = {k: torch.cat([p[k] for p in train_parts]).to(device) for k in train_parts[0]}
+    val_data = (
+        {k: torch.cat([p[k] for p in val_parts]).to(device) for k in val_parts[0]}
+        if val_parts
+        else None
+    )
 
     state_path = out / STATE_FILE
     state = (
@@ -247,12 +292,15 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         noise.set_state(state["noise"].cpu() if device.type == "cpu" else state["noise"])
         step, elapsed = int(state["step"]), float(state["elapsed"])
 
-    n_train = len(train_rows)
+    n_train = len(sources)
     info = {
         "data": [str(d) for d in cfg.data],
         "scenes": sum(sizes),
         "train_windows": n_train,
-        "val_windows": len(val_rows),
+        "train_windows_per_source": per_source,
+        "agent_centred": [str(d) for d in cfg.agent_centred],
+        "data_weights": None if cfg.data_weights is None else list(cfg.data_weights),
+        "val_windows": 0 if val_data is None else int(val_data["history"].shape[0]),
         "parameters": sum(p.numel() for p in model.parameters()),
         "batch_size": cfg.batch_size,
         "lr": cfg.lr,
@@ -271,7 +319,13 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         from tqdm import tqdm
 
         bar = tqdm(total=cfg.steps, initial=step, desc="train", unit="step", dynamic_ncols=True)
-    batches = _batches(n_train, cfg.batch_size, cfg.seed, step)
+    batches = (
+        _batches(n_train, cfg.batch_size, cfg.seed, step)
+        if cfg.data_weights is None
+        else _weighted_batches(
+            torch.tensor(sources), cfg.data_weights, cfg.batch_size, cfg.seed, step
+        )
+    )
     running: dict[str, float] = {}
     record: dict[str, Any] = {}
     t_start = time.perf_counter() - elapsed
@@ -348,6 +402,13 @@ def _plain(cfg: TrainConfig) -> dict[str, Any]:
     """The run settings as plain containers (compared on resume; stored in ``last.pt``)."""
     d = dataclasses.asdict(cfg)
     d["data"] = [str(x) for x in d["data"]]
+    d["agent_centred"] = [str(x) for x in d["agent_centred"]]
+    if not d["agent_centred"]:
+        d.pop("agent_centred")  # runs from before agent-centred windows still resume
+    if d["data_weights"] is None:
+        d.pop("data_weights")
+    else:
+        d["data_weights"] = [float(x) for x in d["data_weights"]]
     d["model_overrides"] = {k: v for k, v in sorted(dict(cfg.model_overrides).items())}
     d.pop("device")
     d.pop("out")  # a moved or copied run directory still resumes
