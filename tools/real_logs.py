@@ -22,6 +22,9 @@ Per source (``NAME=DIR``; ``--scenarionet`` and ``--commonroad`` repeat):
   moving), vehicle-vehicle collisions between non-ego vehicles that the log itself does not
   have over the same steps (a pair overlapping in the log is not new), and the episodes whose
   selection (on the factual future, as the closed loop makes it) found an adversary;
+  ``--network-alone`` runs the same with the reflexes off (no yielding, no road keeping) and
+  no final-step lane keeping: what the world model itself does. ``--min-seconds S`` keeps
+  only logs at least S seconds long (all sources);
 - ``--plots K``: the drivable area over the log for the first K scenes, PNG: moving vehicles'
   positions green on the road and red off it, parked ones grey or orange, the ego blue.
 
@@ -135,14 +138,17 @@ def new_vehicle_collisions(sim: Scene, factual: Scene) -> int:
     return int(np.triu(sim_pairs & ~log_pairs, 1).sum())
 
 
-def closed_loop(scenes: list[Scene], model_dir: str) -> dict:
+def closed_loop(scenes: list[Scene], model_dir: str, network_alone: bool = False) -> dict:
     """The unguided closed loop with log-replay ego on each scene (module docstring)."""
     from counterscene_env.planners import make_planner
     from counterscene_env.sim import ClosedLoop, SimConfig
     from counterscene_env.stress import run_batch
     from counterscene_env.world_model import load_model
 
-    loop = ClosedLoop(load_model(model_dir), SimConfig(guidance="none"))
+    alone = {"traffic_yields": False, "road_keeping": False, "lane_steering": 0}
+    loop = ClosedLoop(
+        load_model(model_dir), SimConfig(guidance="none", **(alone if network_alone else {}))
+    )
     rows, start = [], time.perf_counter()
     for i, scene in enumerate(scenes):
         rec = run_batch(loop, [scene], [i], [make_planner("log")])[0]
@@ -162,6 +168,7 @@ def closed_loop(scenes: list[Scene], model_dir: str) -> dict:
     n = len(rows)
     return {
         "episodes": n,
+        "network_alone": network_alone,
         "orr_mean": float(np.nanmean([r["orr"] for r in rows])) if n else None,
         "orr_moving_mean": float(np.nanmean([r["orr_moving"] for r in rows])) if n else None,
         "episodes_with_new_vehicle_collision": rate(
@@ -322,6 +329,12 @@ def main() -> None:
     ap.add_argument("--plots", type=int, default=0, help="plot the first K scenes per source")
     ap.add_argument("--closed-loop", type=int, default=0, metavar="K", help="closed loop on K")
     ap.add_argument("--model", default="default", help="world model directory (closed loop)")
+    ap.add_argument(
+        "--network-alone",
+        action="store_true",
+        help="closed loop without yielding, road keeping and lane keeping",
+    )
+    ap.add_argument("--min-seconds", type=float, default=0.0, help="only logs at least this long")
     ap.add_argument("--out", required=True, metavar="DIR")
     args = ap.parse_args()
     out = Path(args.out)
@@ -332,9 +345,21 @@ def main() -> None:
     for kind, spec in sources:
         name, _, path = spec.partition("=")
         scenes, times, skipped = load_source(kind, path)
+        if args.min_seconds:
+            long = [i for i, s in enumerate(scenes) if s.num_steps * s.dt >= args.min_seconds]
+            skipped.update(
+                {
+                    scenes[i].scenario_id: "shorter than --min-seconds"
+                    for i in range(len(scenes))
+                    if i not in long
+                }
+            )
+            scenes, times = [scenes[i] for i in long], [times[i] for i in long]
         results.append(summarise(name, scenes, times, skipped))
         if args.closed_loop:
-            results[-1]["closed_loop"] = closed_loop(scenes[: args.closed_loop], args.model)
+            results[-1]["closed_loop"] = closed_loop(
+                scenes[: args.closed_loop], args.model, args.network_alone
+            )
         for scene in scenes[: args.plots]:
             plot_scene(scene, out / f"{name}_{scene.scenario_id.replace('/', '_')}.png")
         print(markdown(results[-1:]), flush=True)

@@ -335,9 +335,12 @@ class _Estimates:
 
     @staticmethod
     def _interval(draws: np.ndarray | None) -> list[float] | None:
-        if draws is None or np.isnan(draws).all():
+        # A resample without the figure's agents (or, for a ratio, with a zero denominator:
+        # constant velocity is exact on still cars) has no value; the others make the interval.
+        draws = None if draws is None else draws[np.isfinite(draws)]
+        if draws is None or not draws.size:
             return None
-        return [float(x) for x in np.nanpercentile(draws, [2.5, 97.5])]
+        return [float(x) for x in np.percentile(draws, [2.5, 97.5])]
 
     def ci(self, name: str) -> list[float] | None:
         return self._interval(self._boot(name))
