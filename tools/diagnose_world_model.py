@@ -1,0 +1,232 @@
+"""Why does a world model lose to constant velocity on a source? The measurements behind the
+hypotheses table of docs/world_model.md ("Why the first models lost to constant velocity").
+
+    python tools/diagnose_world_model.py --scenarionet nuscenes=../shared/data/nuscenes_mini_scenarionet \
+        --data ngsim=data/ngsim_train --data intersection=data/intersection --model default
+
+Windows: every second of each log where 3 s of history and 3 s of future exist (at most
+``--scenes`` scenes per source), centred on the scene's ego. Agents moving now (3 m/s or more)
+and valid 3 s later are scored; for each:
+
+- ``variants``: ADE over 0-3 s [m], the error 3 s ahead split along the agent's course now
+  (``along_mean``, ``along_abs``) and across it (``cross_abs``), speed 3 s ahead [m/s] and the
+  course change by then [deg], for the model (one sample, as configured), the network alone
+  (no final-step lane keeping), the network with no lane map at all, the log's own action
+  tokens rolled out through the model's unicycle (what the action space can express), and
+  constant velocity;
+- ``course``: constant velocity along the course now (a backward difference over 0.1 s),
+  along the heading, and along the course over 0.5 s;
+- ``actions``: the logged action tokens [m/s^2, rad/s]: median and 90th percentile of their
+  size, and their mean and spread in the model's normalised units;
+- ``lanes``: lane segments within 30 m of a moving agent, segment lengths and widths, and the
+  share of the agents' logged positions over 3 s more than 0.5 m outside every lane the
+  model's window holds.
+
+Prints one JSON object per source and writes them to ``--out`` (a .json file) if given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import default_collate
+
+from counterscene_env.scene.reading import iter_scenes
+from counterscene_env.world_model import load_model
+from counterscene_env.world_model.dataset import SceneWindowDataset
+from counterscene_env.world_model.window import lane_segments
+
+HORIZON = 30  # 3 s at 10 Hz
+MOVING = 3.0  # m/s
+
+
+def windows(scenes, model) -> dict[str, torch.Tensor]:
+    ds = SceneWindowDataset(scenes, model.window_config())
+    items = [
+        ds.window(i, t0)
+        for i, s in enumerate(scenes)
+        for t0 in range(30, s.num_steps - HORIZON, 10)
+        if s.valid[s.ego_index, t0]
+    ]
+    return default_collate(
+        [{k: torch.from_numpy(np.asarray(v)) for k, v in w.items()} for w in items]
+    )
+
+
+def scored(model, batch) -> tuple[torch.Tensor, torch.Tensor]:
+    """The state now ``[B, K, 4]`` and the moving agents valid 3 s ahead ``[B, K]``."""
+    state = model.current_state(batch)
+    ok = model.agent_mask(batch) & batch["future_valid"][..., HORIZON - 1]
+    return state, ok & (state[..., 3].abs() >= MOVING)
+
+
+def errors(pred, batch, state, sel) -> dict[str, float]:
+    """Error figures of ``pred [B, K, F, >=3]`` (x, y, course) on the agents ``sel``."""
+    fut, fok = batch["future"][..., :HORIZON, :], batch["future_valid"][..., :HORIZON]
+    err = (pred[..., :HORIZON, :2] - fut[..., :2]).norm(dim=-1)
+    ade = (err * fok).sum(-1) / fok.sum(-1).clamp(min=1)
+    e = pred[..., HORIZON - 1, :2] - fut[..., HORIZON - 1, :2]
+    c, s = torch.cos(state[..., 2]), torch.sin(state[..., 2])
+    along, cross = e[..., 0] * c + e[..., 1] * s, -e[..., 0] * s + e[..., 1] * c
+    speed = (pred[..., HORIZON - 1, :2] - pred[..., HORIZON - 2, :2]).norm(dim=-1) / 0.1
+    turn = torch.atan2(
+        torch.sin(pred[..., HORIZON - 1, 2] - state[..., 2]),
+        torch.cos(pred[..., HORIZON - 1, 2] - state[..., 2]),
+    )
+    return {
+        "ade3": float(ade[sel].mean()),
+        "along_mean": float(along[sel].mean()),
+        "along_abs": float(along[sel].abs().mean()),
+        "cross_abs": float(cross[sel].abs().mean()),
+        "speed3": float(speed[sel].mean()),
+        "course_change_deg": float(torch.rad2deg(turn[sel].abs().mean())),
+    }
+
+
+def constant_velocity(model, batch, course) -> torch.Tensor:
+    state = model.current_state(batch)
+    t = torch.arange(1, model.config.future_steps + 1) * model.config.dt
+    step = state[..., 3, None] * t  # [B, K, F] m
+    xy = (
+        state[..., None, :2]
+        + step[..., None] * torch.stack([torch.cos(course), torch.sin(course)], -1)[..., None, :]
+    )
+    return torch.cat([xy, course[..., None, None].expand(*xy.shape[:-1], 1)], -1)
+
+
+def variants(model, batch, state, sel, seed: int) -> dict[str, dict]:
+    def sample(b, **kw):
+        g = torch.Generator().manual_seed(seed)
+        out = []
+        for lo in range(0, b["history"].shape[0], 16):
+            part = {k: v[lo : lo + 16] for k, v in b.items()}
+            with torch.no_grad():
+                out.append(model.sample(part, 1, g, **kw).trajectory[:, 0])
+        return torch.cat(out)
+
+    no_map = {**batch, "map_valid": torch.zeros_like(batch["map_valid"])}
+    actions, _ = model.target_actions(batch)
+    with torch.no_grad():
+        logged = model.rollout(model.normalize(actions), state)
+    preds = {
+        "model": sample(batch),
+        "network": sample(batch, lane_steering=0),
+        "network_no_map": sample(no_map, lane_steering=0),
+        "logged_actions": logged,
+        "constant_velocity": constant_velocity(model, batch, state[..., 2]),
+    }
+    return {name: errors(p, batch, state, sel) for name, p in preds.items()}
+
+
+def course_test(model, batch, state, sel) -> dict[str, float]:
+    hist, ok = batch["history"], batch["history_valid"]
+    d = hist[..., -1, :2] - hist[..., -6, :2]
+    slow = ok[..., -6] & (d.norm(dim=-1) > 1.0)
+    course_05 = torch.where(slow, torch.atan2(d[..., 1], d[..., 0]), state[..., 2])
+    out = {}
+    for name, course in (
+        ("course_0.1s", state[..., 2]),
+        ("heading", hist[..., -1, 2]),
+        ("course_0.5s", course_05),
+    ):
+        out[f"cv_ade3_{name}"] = errors(constant_velocity(model, batch, course), batch, state, sel)[
+            "ade3"
+        ]
+    return out
+
+
+def action_stats(model, batch, sel) -> dict:
+    actions, ok = model.target_actions(batch)
+    m = ok & sel[..., None]
+    a, z = actions[m], model.normalize(actions)[m]
+    pct = lambda x: [round(float(v), 3) for v in np.percentile(x.abs().numpy(), [50, 90])]  # noqa: E731
+    return {
+        "tokens": int(m.sum()),
+        "abs_acceleration_p50_p90": pct(a[:, 0]),
+        "abs_yaw_rate_p50_p90": pct(a[:, 1]),
+        "normalised_mean": [round(float(v), 3) for v in z.mean(0)],
+        "normalised_std": [round(float(v), 3) for v in z.std(0)],
+    }
+
+
+def lane_stats(scenes, batch, sel) -> dict:
+    lengths, widths, near = [], [], []
+    for s in scenes:
+        seg, w = lane_segments(s, 20.0, 10)
+        if not len(seg):
+            continue
+        lengths += np.linalg.norm(np.diff(seg, axis=1), axis=-1).sum(1).tolist()
+        widths += w.tolist()
+        t = s.current_index
+        moving = s.valid[:, t] & (np.abs(s.speeds[:, t]) >= MOVING) & (s.agent_types == "vehicle")
+        for i in np.flatnonzero(moving):
+            dist = np.linalg.norm(seg - s.positions[i, t], axis=-1).min(1)
+            near.append(int((dist < 30).sum()))
+    outside = total = 0
+    for b in range(batch["history"].shape[0]):
+        lanes = batch["map"][b][batch["map_valid"][b]].numpy()
+        half = batch["map_widths"][b][batch["map_valid"][b]].numpy() / 2
+        pts = batch["future"][b, :, :HORIZON, :2][sel[b]][
+            batch["future_valid"][b, :, :HORIZON][sel[b]]
+        ]
+        pts = pts.numpy()
+        if not len(pts):
+            continue
+        total += len(pts)
+        if not len(lanes):
+            outside += len(pts)
+            continue
+        a, e = lanes[:, :-1].reshape(-1, 2), lanes[:, 1:].reshape(-1, 2)
+        ab = e - a
+        u = ((pts[:, None] - a[None]) * ab[None]).sum(-1) / np.maximum((ab**2).sum(-1), 1e-9)
+        foot = a[None] + np.clip(u, 0, 1)[..., None] * ab[None]
+        gap = np.linalg.norm(pts[:, None] - foot, axis=-1) - np.repeat(half, lanes.shape[1] - 1)
+        outside += int((gap.min(1) > 0.5).sum())
+    pct = lambda x: [round(float(v), 2) for v in np.percentile(x, [10, 50, 90])]  # noqa: E731
+    return {
+        "segment_length_p10_p50_p90": pct(lengths),
+        "width_p10_p50_p90": pct(widths),
+        "segments_within_30m_p10_p50_p90": pct(near) if near else None,
+        "logged_positions_outside_window_lanes": outside / total if total else None,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenarionet", action="append", default=[], metavar="NAME=DIR")
+    ap.add_argument("--data", action="append", default=[], metavar="NAME=DIR")
+    ap.add_argument("--model", default="default")
+    ap.add_argument("--scenes", type=int, default=100, help="at most this many per source")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", help="write the results here (JSON)")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    model = load_model(args.model).eval()
+    results = {}
+    for spec in args.scenarionet + args.data:
+        name, _, path = spec.partition("=")
+        scenes = [s for s, _ in iter_scenes(Path(path))][: args.scenes]
+        batch = windows(scenes, model)
+        state, sel = scored(model, batch)
+        results[name] = {
+            "scenes": len(scenes),
+            "windows": int(batch["history"].shape[0]),
+            "moving_agent_windows": int(sel.sum()),
+            "log_speed_now": float(state[..., 3][sel].mean()),
+            "log_speed3": float(batch["future"][..., HORIZON - 1, 3][sel].abs().mean()),
+            "variants": variants(model, batch, state, sel, args.seed),
+            "course": course_test(model, batch, state, sel),
+            "actions": action_stats(model, batch, sel),
+            "lanes": lane_stats(scenes, batch, sel),
+        }
+        print(json.dumps({name: results[name]}), flush=True)
+    if args.out:
+        Path(args.out).write_text(json.dumps(results, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
