@@ -411,6 +411,32 @@ def test_lane_steering_turns_a_drifting_car_back_onto_the_road():
     assert steer_onto_lanes(tiny, batch, x, 0) is x
 
 
+def test_lane_steering_leaves_plans_that_run_past_the_end_of_the_map_alone():
+    """A real map is a crop: a car driving straight on toward the map's edge is not off its
+    lane once it is past the last lane's end, so lane keeping does not turn it round toward
+    the lane end (it did, on NGSIM's short map sections)."""
+    from conftest import straight_road
+
+    from counterscene_env.world_model.map_guidance import steer_onto_lanes
+
+    tiny = _model(normalization=Normalization((0.0, 0.0), (1.4, 0.3)))
+    # The road ends at x = 70 m (20 m ahead of the ego, at the window's origin); the cars are
+    # at x = 50 and 38 now and drive on along +x, 40 m past the end by the horizon.
+    scene = _straight_scene((10.0, 12.0), (0.0, 4.0), (0.0, -15.0))
+    batch = _batch(tiny, [scene.replace(road=straight_road(2, 70.0))])
+    c = tiny.config
+    plan = torch.zeros(1, c.num_agents, c.action_tokens, 2)
+    # m/s^2 and rad/s: drifting 0.4 m to the left by the road's end, well inside the lane
+    plan[..., 0], plan[..., 1] = 0.5, 0.02
+    x = tiny.normalize(plan)
+    assert (tiny.rollout(x, tiny.current_state(batch))[0, :2, -1, 0] > 55).all()
+    assert torch.equal(steer_onto_lanes(tiny, batch, x, 40), x)
+    # Drifting off the side of the same road is still corrected.
+    plan[..., 1] = 0.3  # rad/s
+    drifting = tiny.normalize(plan)
+    assert not torch.equal(steer_onto_lanes(tiny, batch, drifting, 40), drifting)
+
+
 def test_steering_rollout_is_the_unicycle_with_fixed_accelerations(tiny):
     from counterscene_env.world_model.map_guidance import _steering_rollout
 

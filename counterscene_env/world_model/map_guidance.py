@@ -32,9 +32,17 @@ ADAM_EPS = 1e-8
 
 def _segment_distance(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Distance [m] of points ``p [..., 2]`` to segments ``a -> b [..., 2]`` (broadcast)."""
+    return _segment_projection(p, a, b)[0]
+
+
+def _segment_projection(
+    p: torch.Tensor, a: torch.Tensor, b: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Distance [m] of points ``p [..., 2]`` to segments ``a -> b [..., 2]`` (broadcast), and
+    where the point projects along the segment (``u``: 0 at ``a``, 1 at ``b``, unclamped)."""
     ab = b - a
-    u = (((p - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp(min=1e-9)).clamp(0, 1)
-    return (p - (a + u[..., None] * ab)).norm(dim=-1)
+    u = ((p - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp(min=1e-9)
+    return (p - (a + u.clamp(0, 1)[..., None] * ab)).norm(dim=-1), u
 
 
 def lane_excess(
@@ -126,7 +134,9 @@ def steer_onto_lanes(
     lies outside the nearest candidate strip narrowed by ``LANE_MARGIN``, plus
     ``STEER_PRIOR`` x the squared change of its tokens. Acceleration is never touched: braking
     is the cheapest way to stay on a lane (a car that stops stays where it is), and it is not
-    what an under-turning sample gets wrong. Each agent keeps the iterate of lowest cost. The
+    what an under-turning sample gets wrong. Each agent keeps the iterate of lowest cost. A
+    point past a lane's end (beyond the first or last point of the lane piece nearest to it)
+    is not off its lane: a real map is a crop, and the road goes on beyond it. The
     candidates are each point's ``CANDIDATES`` nearest segments before the correction, so one
     step costs ``K x F x CANDIDATES`` distances per sample instead of every segment of the map.
 
@@ -152,22 +162,8 @@ def steer_onto_lanes(
     half = (widths[:, :, None] / 2 - LANE_MARGIN).expand(N, M, P - 1).reshape(N, -1)
     ok = lanes_ok[:, :, None].expand(N, M, P - 1).reshape(N, -1)
     rollout = _steering_rollout(model, normalized, state)
-    # Each predicted point aims at its CANDIDATES nearest segments, chosen once: refreshing
-    # them as the points move bought little for its cost. They are ranked by the distance to
-    # the segments' midpoints less their half-widths, one matrix product (``torch.cdist``)
-    # instead of an exact point-to-segment distance to every segment of the map, which
-    # dominated the steering's time (docs/performance.md); segments are short (a lane piece
-    # over its points), so the nearest midpoints hold the nearest segments.
     with torch.no_grad():
-        xy = rollout(normalized)  # [N, K, F, 2]
-        mid = (a + b) / 2  # [N, M*(P-1), 2]
-        gap = torch.cdist(xy.flatten(1, 2), mid) - half[:, None]  # [N, K*F, M*(P-1)]
-        gap = torch.where(ok[:, None], gap, torch.inf)
-        idx = gap.topk(min(CANDIDATES, gap.shape[-1]), dim=-1, largest=False).indices
-        scene = torch.arange(N, device=idx.device)[:, None, None]
-        shape = (*xy.shape[:3], idx.shape[-1])  # [N, K, F, C]
-        ca, cb = a[scene, idx].reshape(*shape, 2), b[scene, idx].reshape(*shape, 2)
-        ch, cok = half[scene, idx].reshape(shape), ok[scene, idx].reshape(shape)
+        ca, cb, ch, cok, first, last = _candidates(rollout(normalized), a, b, half, ok, P)
     steer = torch.zeros_like(normalized)
     steer[..., 1] = 1.0  # only the yaw-rate channel moves
     steer = steer * guided[..., None, None]
@@ -184,9 +180,17 @@ def steer_onto_lanes(
             x = delta.requires_grad_(True)
             change = x * steer
             p = rollout(normalized + change)  # [N, K, F, 2]
-            dist = _segment_distance(p[..., None, :], ca, cb) - ch  # [N, K, F, C]
-            excess = torch.where(cok, dist, 1e3).amin(-1).clamp(min=0)  # [N, K, F]
-            excess = torch.where(guided[..., None], excess, 0.0)
+            dist, u = _segment_projection(p[..., None, :], ca, cb)  # [N, K, F, C]
+            gap = torch.where(cok, dist - ch, 1e3)
+            nearest = gap.argmin(-1, keepdim=True)
+            # A point is off its lane only beside a lane, not past a lane's end: a real map is
+            # a crop, and beyond its last lane nothing is known (the road goes on). Without
+            # this, a plan that runs past the end of the map is steered round in a circle
+            # toward the nearest lane end (docs/world_model.md, "Real driving").
+            beyond = ((u > 1) & last) | ((u < 0) & first)
+            beyond = beyond.gather(-1, nearest)[..., 0]
+            excess = gap.gather(-1, nearest)[..., 0].clamp(min=0)  # [N, K, F]
+            excess = torch.where(guided[..., None] & ~beyond, excess, 0.0)
             cost = (excess**2).mean(-1) + STEER_PRIOR * (change**2).sum((-1, -2))  # [N, K]
             grad = torch.autograd.grad(cost.sum(), x)[0] if i < iterations else None
         delta = delta.detach()
@@ -202,6 +206,45 @@ def steer_onto_lanes(
             v_hat = v / (1 - ADAM_BETAS[1] ** (i + 1))
             delta = delta - STEER_LR * m_hat / (v_hat.sqrt() + ADAM_EPS)
     return (normalized + best * steer).detach()
+
+
+def _candidates(
+    xy: torch.Tensor, a: torch.Tensor, b: torch.Tensor, half: torch.Tensor, ok: torch.Tensor, P: int
+) -> tuple[torch.Tensor, ...]:
+    """Each predicted point's ``CANDIDATES`` nearest lane sub-segments.
+
+    Args:
+        xy: ``[N, K, F, 2]`` predicted centres, m; ``a``, ``b``: ``[N, S, 2]`` sub-segment ends
+            (``S = M (P - 1)``, lane piece by lane piece); ``half``: ``[N, S]`` allowed
+            half-widths, m; ``ok``: ``[N, S]`` validity; ``P``: points per lane piece.
+
+    Returns:
+        ``[N, K, F, C, ...]``: the candidates' ends ``a``, ``b`` (``[..., 2]``), half-widths,
+        validity, and whether each is the first or the last sub-segment of its lane piece.
+    """
+    # Chosen once: refreshing them as the points move bought little for its cost. They are
+    # ranked by the distance to the segments' midpoints less their half-widths, one matrix
+    # product (``torch.cdist``) instead of an exact point-to-segment distance to every segment
+    # of the map, which dominated the steering's time (docs/performance.md); segments are
+    # short (a lane piece over its points), so the nearest midpoints hold the nearest segments.
+    N = xy.shape[0]
+    mid = (a + b) / 2  # [N, S, 2]
+    gap = torch.cdist(xy.flatten(1, 2), mid) - half[:, None]  # [N, K*F, S]
+    gap = torch.where(ok[:, None], gap, torch.inf)
+    idx = gap.topk(min(CANDIDATES, gap.shape[-1]), dim=-1, largest=False).indices
+    scene = torch.arange(N, device=idx.device)[:, None, None]
+    shape = (*xy.shape[:3], idx.shape[-1])  # [N, K, F, C]
+    # Which sub-segment of its lane piece each candidate is: a point past the first or the
+    # last one lies beyond the piece, not beside it.
+    sub = (idx % (P - 1)).reshape(shape)
+    return (
+        a[scene, idx].reshape(*shape, 2),
+        b[scene, idx].reshape(*shape, 2),
+        half[scene, idx].reshape(shape),
+        ok[scene, idx].reshape(shape),
+        sub == 0,
+        sub == P - 2,
+    )
 
 
 def _steering_rollout(model, normalized: torch.Tensor, state: torch.Tensor):
