@@ -540,3 +540,6 @@ def test_weighted_batches_fill_each_source_to_its_share():
     assert abs(share - 0.75) < 0.03  # 6400 draws: the standard error is 0.005
     again = _weighted_batches(sources, (1.0, 3.0), 64, seed=0, start_step=99)
     assert torch.equal(next(again), rows[-64:])
+    # Weight only on a source without windows: refused at once, not at the first step.
+    with pytest.raises(ValueError, match="positive weight has no windows"):
+        _weighted_batches(torch.zeros(5, dtype=torch.long), (0.0, 1.0), 4, seed=0, start_step=0)

@@ -9,11 +9,12 @@ Centres (``centres``): ``"ego"`` centres every window on the scene's ego (genera
 the ego is an ordinary IDM car). ``"agents"`` makes every vehicle a centre in turn, wherever it
 has at least :data:`MIN_CENTRE_HISTORY` valid frames up to ``t0`` and ``min_future_steps``
 valid frames after it: a real recording has one logged "ego" at most, and most of its
-vehicles would otherwise only ever be seen from far away, without the lanes around them. ``min_future_steps`` defaults to the window's
-``future_steps`` (every window has its whole future); a smaller value admits windows near the
-end of short real logs, whose missing future frames are invalid and masked out of the loss
-(``future_valid``). NGSIM recordings run 7 s at the median: with full 5.2 s futures only about
-15 of 84 give a window at all.
+vehicles would otherwise only ever be seen from far away, without the lanes around them.
+
+``min_future_steps`` defaults to the window's ``future_steps`` (every window has its whole
+future); a smaller value admits windows near the end of short real logs, whose missing future
+frames are invalid and masked out of the loss (``future_valid``). NGSIM recordings run 7 s at
+the median: with full 5.2 s futures only about 15 of 84 give a window at all.
 """
 
 from __future__ import annotations

@@ -2,8 +2,9 @@
 
 For each scene, at its "now" step (``current_index``, 3 s of history), or with ``every`` at
 every ``every`` seconds of the log where 3 s of history and 3 s of future exist (real scenes
-are few; each start time is a window), the model predicts every agent it sees (the ego and its nearest vehicles, ``num_agents`` within ``agent_radius``) over its
-horizon, ``num_samples`` samples in one batched call. Against the log's future:
+are few; each start time is a window), the model predicts every agent it sees (the ego and
+its nearest vehicles, ``num_agents`` within ``agent_radius``) over its horizon,
+``num_samples`` samples in one batched call. Against the log's future:
 
 - ``ade[h]``: mean displacement [m] over steps 1..h of the *first* sample, averaged over agents
   with at least one valid frame in that range; ``fde[h]``: displacement at step h, over agents
@@ -34,7 +35,7 @@ are agent-windows.
 Short logs: future frames beyond the log are invalid and simply not scored, and history before
 the log's first frame is padded by the window. A scene whose log ends at its "now" step has
 nothing to compare against: it is skipped and counted (``skipped_scenes``; ``scenes`` counts
-the scenes scored).
+the scenes scored); so is, with ``every``, a log too short for any start time.
 """
 
 from __future__ import annotations

@@ -158,11 +158,17 @@ def _weighted_batches(
     counts = torch.bincount(sources, minlength=len(weights)).double()
     w = torch.tensor(weights, dtype=torch.float64)
     p = (w / counts.clamp(min=1))[sources]  # per window; an empty source gets nothing
-    step = start_step
-    while True:
-        g = torch.Generator().manual_seed(seed * 100003 + step)
-        yield torch.multinomial(p, batch_size, replacement=True, generator=g)
-        step += 1
+    if not p.sum() > 0:
+        raise ValueError("data_weights: every dataset with a positive weight has no windows")
+
+    def draws() -> Iterator[torch.Tensor]:
+        step = start_step
+        while True:
+            g = torch.Generator().manual_seed(seed * 100003 + step)
+            yield torch.multinomial(p, batch_size, replacement=True, generator=g)
+            step += 1
+
+    return draws()
 
 
 def _batches(n: int, batch_size: int, seed: int, start_step: int) -> Iterator[torch.Tensor]:
