@@ -38,6 +38,8 @@ from torch.utils.data import default_collate
 from counterscene_env.scene.reading import iter_scenes
 from counterscene_env.world_model import load_model
 from counterscene_env.world_model.dataset import SceneWindowDataset
+from counterscene_env.world_model.evaluate import constant_velocity, start_steps
+from counterscene_env.world_model.map_guidance import lane_excess
 from counterscene_env.world_model.window import lane_segments
 
 HORIZON = 30  # 3 s at 10 Hz
@@ -46,11 +48,11 @@ MOVING = 3.0  # m/s
 
 def windows(scenes, model) -> dict[str, torch.Tensor]:
     ds = SceneWindowDataset(scenes, model.window_config())
+    every = round(1.0 / model.config.dt)  # one start per second
     items = [
         ds.window(i, t0)
         for i, s in enumerate(scenes)
-        for t0 in range(30, s.num_steps - HORIZON, 10)
-        if s.valid[s.ego_index, t0]
+        for t0 in start_steps(s, model.config.history_steps, every, HORIZON)
     ]
     return default_collate(
         [{k: torch.from_numpy(np.asarray(v)) for k, v in w.items()} for w in items]
@@ -87,14 +89,10 @@ def errors(pred, batch, state, sel) -> dict[str, float]:
     }
 
 
-def constant_velocity(model, batch, course) -> torch.Tensor:
-    state = model.current_state(batch)
-    t = torch.arange(1, model.config.future_steps + 1) * model.config.dt
-    step = state[..., 3, None] * t  # [B, K, F] m
-    xy = (
-        state[..., None, :2]
-        + step[..., None] * torch.stack([torch.cos(course), torch.sin(course)], -1)[..., None, :]
-    )
+def cv_track(model, state, course) -> torch.Tensor:
+    """Constant velocity along ``course [B, K]`` as ``[B, K, F, 3]`` (x, y, course)."""
+    c = model.config
+    xy = torch.from_numpy(constant_velocity(state.numpy(), c.future_steps, c.dt, course.numpy()))
     return torch.cat([xy, course[..., None, None].expand(*xy.shape[:-1], 1)], -1)
 
 
@@ -117,7 +115,7 @@ def variants(model, batch, state, sel, seed: int) -> dict[str, dict]:
         "network": sample(batch, lane_steering=0),
         "network_no_map": sample(no_map, lane_steering=0),
         "logged_actions": logged,
-        "constant_velocity": constant_velocity(model, batch, state[..., 2]),
+        "constant_velocity": cv_track(model, state, state[..., 2]),
     }
     return {name: errors(p, batch, state, sel) for name, p in preds.items()}
 
@@ -133,9 +131,7 @@ def course_test(model, batch, state, sel) -> dict[str, float]:
         ("heading", hist[..., -1, 2]),
         ("course_0.5s", course_05),
     ):
-        out[f"cv_ade3_{name}"] = errors(constant_velocity(model, batch, course), batch, state, sel)[
-            "ade3"
-        ]
+        out[f"cv_ade3_{name}"] = errors(cv_track(model, state, course), batch, state, sel)["ade3"]
     return out
 
 
@@ -166,26 +162,18 @@ def lane_stats(scenes, batch, sel) -> dict:
         for i in np.flatnonzero(moving):
             dist = np.linalg.norm(seg - s.positions[i, t], axis=-1).min(1)
             near.append(int((dist < 30).sum()))
-    outside = total = 0
-    for b in range(batch["history"].shape[0]):
-        lanes = batch["map"][b][batch["map_valid"][b]].numpy()
-        half = batch["map_widths"][b][batch["map_valid"][b]].numpy() / 2
-        pts = batch["future"][b, :, :HORIZON, :2][sel[b]][
-            batch["future_valid"][b, :, :HORIZON][sel[b]]
-        ]
-        pts = pts.numpy()
-        if not len(pts):
-            continue
-        total += len(pts)
-        if not len(lanes):
-            outside += len(pts)
-            continue
-        a, e = lanes[:, :-1].reshape(-1, 2), lanes[:, 1:].reshape(-1, 2)
-        ab = e - a
-        u = ((pts[:, None] - a[None]) * ab[None]).sum(-1) / np.maximum((ab**2).sum(-1), 1e-9)
-        foot = a[None] + np.clip(u, 0, 1)[..., None] * ab[None]
-        gap = np.linalg.norm(pts[:, None] - foot, axis=-1) - np.repeat(half, lanes.shape[1] - 1)
-        outside += int((gap.min(1) > 0.5).sum())
+    ok = sel[..., None] & batch["future_valid"][..., :HORIZON]  # [B, K, HORIZON]
+    outside = 0
+    for lo in range(0, ok.shape[0], 16):  # lane_excess holds [16, K, HORIZON, segments]
+        part = slice(lo, lo + 16)
+        excess = lane_excess(
+            batch["future"][part, :, :HORIZON, :2],
+            batch["map"][part],
+            batch["map_valid"][part],
+            batch["map_widths"][part],
+        )
+        outside += int(((excess > 0.5) & ok[part]).sum())
+    total = int(ok.sum())
     pct = lambda x: [round(float(v), 2) for v in np.percentile(x, [10, 50, 90])]  # noqa: E731
     return {
         "segment_length_p10_p50_p90": pct(lengths),

@@ -85,6 +85,17 @@ def horizons(model: WorldModel) -> dict[str, int]:
     return out
 
 
+def constant_velocity(
+    state: np.ndarray, steps: int, dt: float, course: np.ndarray | None = None
+) -> np.ndarray:
+    """The baseline: ``[..., steps, 2]`` m, each agent moving on from ``state [..., 4]`` (x m,
+    y m, course rad, speed m/s) at its speed along ``course [...]`` rad (default: its own)."""
+    course = state[..., 2] if course is None else course
+    t = np.arange(1, steps + 1) * dt  # [F] s
+    heading = np.stack([np.cos(course), np.sin(course)], -1)[..., None, :]  # [..., 1, 2]
+    return state[..., None, :2] + (state[..., 3, None] * t)[..., None] * heading
+
+
 def speed_bins(speed: np.ndarray) -> np.ndarray:
     """Index into :data:`SPEED_BINS` of each speed ``[...]`` m/s -> ``[...]`` int.
 
@@ -233,13 +244,12 @@ def _score_chunk(
         pred = prediction.trajectory.numpy()  # [B, S, K, F, 4]
         agent_ok = prediction.valid.numpy()  # [B, K]
         state = model.current_state(batch).numpy()  # [B, K, 4] x, y, course, speed (m/s)
-    t = (np.arange(1, F + 1) * model.config.dt)[None, :, None]
-    heading = np.stack([np.cos(state[..., 2]), np.sin(state[..., 2])], -1)
-    cv_xy = state[:, :, None, :2] + (state[:, :, None, 3:4] * t) * heading[:, :, None, :]
+    cv_xy = constant_velocity(state, F, model.config.dt)  # [B, K, F, 2]
     bins = speed_bins(state[..., 3])  # [B, K]
     future = batch["future"].numpy()
     valid = batch["future_valid"].numpy() & agent_ok[..., None]
-    n3 = horizons(model).get("3s", F)
+    hz = horizons(model)
+    n3 = hz.get("3s", F)
     for b, road in enumerate(roads):
         keep = agent_ok[b]
         if not keep.any():
@@ -260,7 +270,7 @@ def _score_chunk(
             bins[b][keep],
             still,
             scene_rows[b],
-            horizons(model),
+            hz,
             sums,
             agents,
         )
@@ -318,6 +328,7 @@ class _Estimates:
         self.sums, self.scenes = sums, scenes
         rng = np.random.default_rng(seed)
         self.draws = rng.integers(0, scenes, (resamples, scenes)) if resamples and scenes else None
+        self._draws_of: dict[str, np.ndarray | None] = {}
 
     def _stats(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         return self.sums.arrays(name, self.scenes)
@@ -327,6 +338,12 @@ class _Estimates:
         return float(s.sum() / n.sum()) if n.sum() else None
 
     def _boot(self, name: str) -> np.ndarray | None:
+        # A figure's draws serve its own interval and every ratio it is part of.
+        if name not in self._draws_of:
+            self._draws_of[name] = self._resample(name)
+        return self._draws_of[name]
+
+    def _resample(self, name: str) -> np.ndarray | None:
         s, n = self._stats(name)
         if self.draws is None or not n.sum():
             return None
