@@ -92,3 +92,56 @@ def test_a_users_intersection_env_changes_no_later_scene():
     gym.make("intersection-v2").close()
     after = generate("merge", seed=4)
     assert np.array_equal(before.positions, after.positions)
+
+
+@pytest.mark.parametrize("scenario", ["intersection", "merge"])
+def test_recording_with_the_pruned_searches_equals_highway_envs_own(monkeypatch, scenario):
+    """The recorder's vehicle searches fewer lanes and reuses its predictions; the recorded
+    traffic is bit for bit what highway-env's own searches give (merge has sine lanes,
+    which are never pruned; intersection has arcs)."""
+    from highway_env.vehicle.behavior import IDMVehicle
+    from highway_env.vehicle.controller import ControlledVehicle
+
+    from counterscene_env.scene.highway_vehicle import ForwardIDMVehicle
+
+    fast = record(scenario, 2)
+    monkeypatch.setattr(ForwardIDMVehicle, "on_state_update", IDMVehicle.on_state_update)
+    monkeypatch.setattr(
+        ForwardIDMVehicle,
+        "predict_trajectory_constant_speed",
+        ControlledVehicle.predict_trajectory_constant_speed,
+    )
+    plain = record(scenario, 2)
+    for key in ("positions", "yaws", "speeds", "valid"):
+        np.testing.assert_array_equal(getattr(fast, key), getattr(plain, key), err_msg=key)
+
+
+@pytest.mark.parametrize("scenario", SCENARIOS)
+def test_closest_lane_search_agrees_with_highway_env(scenario):
+    """Random poses near each network, ties included (a pose at a lane's start, where the
+    lanes leaving one node begin together): the pruned search returns highway-env's lane
+    from any lane the vehicle was on before."""
+    from counterscene_env.scene.highway import _make_env
+    from counterscene_env.scene.highway_vehicle import closest_lane_index
+
+    env = _make_env(scenario)
+    env.reset(seed=0)
+    network = env.road.network
+    lanes = network.lanes_list()
+    indexes = [
+        (a, b, i)
+        for a, tos in network.graph.items()
+        for b, ls in tos.items()
+        for i in range(len(ls))
+    ]
+    rng = np.random.default_rng(0)
+    poses = []
+    for _ in range(300):
+        lane = lanes[rng.integers(len(lanes))]
+        s = rng.uniform(-10, lane.length + 10)
+        poses.append((lane.position(s, rng.normal(0, 3)), lane.heading_at(s) + rng.normal(0, 0.5)))
+    poses += [(lane.position(0.0, 0.0), lane.heading_at(0.0)) for lane in lanes]
+    for position, heading in poses:
+        want = network.get_closest_lane_index(position, heading)
+        for current in (want, indexes[rng.integers(len(indexes))], None):
+            assert closest_lane_index(network, position, heading, current) == want

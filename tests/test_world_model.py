@@ -543,3 +543,22 @@ def test_weighted_batches_fill_each_source_to_its_share():
     # Weight only on a source without windows: refused at once, not at the first step.
     with pytest.raises(ValueError, match="positive weight has no windows"):
         _weighted_batches(torch.zeros(5, dtype=torch.long), (0.0, 1.0), 4, seed=0, start_step=0)
+
+
+def test_a_batch_trimmed_of_padding_samples_what_the_padded_batch_does(tiny):
+    """``collate(trim=True)`` cuts the trailing padding agents: the real agents get the same
+    samples (same noise, same context), cold and warm-started, at a fraction of the work."""
+    from counterscene_env.world_model.window import collate, make_window
+
+    scene = _straight_scene()
+    window = make_window(scene, 30, tiny.window_config())
+    full, trimmed = collate([window]), collate([window], trim=True)
+    assert full["agent_valid"].shape[1] == 4 and trimmed["agent_valid"].shape[1] == 2
+    init = torch.randn(1, 4, TINY.action_tokens, 2, generator=torch.Generator().manual_seed(1))
+    for warm in ({}, {"init_steps": 2}):
+        kw = {"init": init, **warm} if warm else {}
+        kt = {"init": init[:, :2], **warm} if warm else {}
+        a = tiny.sample(full, 3, [torch.Generator().manual_seed(0)], **kw)
+        b = tiny.sample(trimmed, 3, [torch.Generator().manual_seed(0)], **kt)
+        torch.testing.assert_close(b.normalized, a.normalized[:, :, :2], rtol=0, atol=1e-5)
+        torch.testing.assert_close(b.trajectory, a.trajectory[:, :, :2], rtol=0, atol=1e-4)

@@ -31,7 +31,7 @@ from counterscene_env.sim.realism import plan_cost
 from counterscene_env.sim.state import Episode, ModelWindow
 from counterscene_env.sim.traffic import IDMLaneFollower
 from counterscene_env.world_model.model import GuidanceHook, Prediction, WorldModel
-from counterscene_env.world_model.window import collate, make_window
+from counterscene_env.world_model.window import agent_count, collate, make_window
 
 
 class Replanner:
@@ -115,18 +115,22 @@ class Replanner:
                 view = sim if ego == sim.ego_index else sim.replace(ego_index=ego)
                 items.append(make_window(view, ep.t, self.window_config, ep.segments))
                 owner.append(i)
-        gens = [eps[o].generator for o in owner]
-        pred = self.model.sample(collate(items), 1, gens, **self.sample_kwargs)
-        for j, (o, item) in enumerate(zip(owner, items, strict=True)):
-            ep = eps[o]
-            k = ep.egos.index(int(item["rows"][0]))
-            ok = (item["rows"] >= 0) & pred.valid[j].numpy()
-            traj = pred.trajectory[j, 0].numpy()[ok]  # [A, F, 4] window frame
-            xy = from_frame(traj[..., :2], item["origin"])
-            yaw = wrap_angle(traj[..., 2] + item["origin"][2])
-            valid = np.ones(xy.shape[:2], bool)
-            rows = item["rows"][ok]
-            ep.selections[k] = self.select(ep, k, xy, valid, traj[..., 3], ep.t + 1, rows, yaw)
+        counts = [agent_count(item) for item in items]
+        for count in sorted(set(counts)):  # one call per agent count, as in ``__call__``
+            js = [j for j, c in enumerate(counts) if c == count]
+            gens = [eps[owner[j]].generator for j in js]
+            batch = collate([items[j] for j in js], trim=True)
+            pred = self.model.sample(batch, 1, gens, **self.sample_kwargs)
+            for i, j in enumerate(js):
+                ep, item = eps[owner[j]], items[j]
+                k = ep.egos.index(int(item["rows"][0]))
+                ok = (item["rows"][:count] >= 0) & pred.valid[i].numpy()
+                traj = pred.trajectory[i, 0].numpy()[ok]  # [A, F, 4] window frame
+                xy = from_frame(traj[..., :2], item["origin"])
+                yaw = wrap_angle(traj[..., 2] + item["origin"][2])
+                valid = np.ones(xy.shape[:2], bool)
+                rows = item["rows"][:count][ok]
+                ep.selections[k] = self.select(ep, k, xy, valid, traj[..., 3], ep.t + 1, rows, yaw)
 
     # ------------------------------------------------------------------ windows
     def windows(self, ep: Episode, sim: Scene) -> list[ModelWindow]:
@@ -196,13 +200,15 @@ class Replanner:
                 owner.append(i)
                 windows.append(window)
         # A warm start needs a previous prediction: episodes at their first replan sample
-        # from pure noise, in a call of their own (an episode's result never depends on
-        # which other episodes share its call).
+        # from pure noise, in a call of their own. Windows are also grouped by the agent
+        # slots they fill, and each call's agent axis is cut to that (``collate(trim=True)``):
+        # padding costs as much as a real agent, and a matrix product's rounding depends on
+        # the sizes, so an episode's result never depends on which others share its call.
         warm = [self.config.warm_start_steps > 0 and eps[o].replans > 0 for o in owner]
-        for group in (False, True):
-            js = [j for j, w in enumerate(warm) if w == group]
-            if js:
-                self._plan([eps[owner[j]] for j in js], [windows[j] for j in js], group)
+        keys = [(w, agent_count(window.arrays)) for w, window in zip(warm, windows, strict=True)]
+        for key in sorted(set(keys)):
+            js = [j for j, k in enumerate(keys) if k == key]
+            self._plan([eps[owner[j]] for j in js], [windows[j] for j in js], key[0])
         planned_now: dict[int, set[int]] = {}
         for o, window in zip(owner, windows, strict=True):
             planned_now.setdefault(o, set()).update(window.plan_rows)
@@ -254,7 +260,7 @@ class Replanner:
         2]`` when given); returns the model's prediction and the ``[W]`` index of the sample
         kept per window."""
         c, g = self.config, self.guidance
-        batch = collate([w.arrays for w in windows])
+        batch = collate([w.arrays for w in windows], trim=True)
         conflicts = [
             eps[o].selections[w.ego].conflict if w.ego >= 0 else None
             for w, o in zip(windows, owner, strict=True)
@@ -275,8 +281,9 @@ class Replanner:
         hook = make_guidance_hook(self.model, batch, targets, S, g) if g.enabled else None
         gens = [eps[o].generator for o in owner]
         warm = {}
-        if init is not None:
-            warm = dict(init=torch.from_numpy(init), init_steps=c.warm_start_steps)
+        if init is not None:  # cut to the batch's trimmed agent axis
+            init = torch.from_numpy(np.ascontiguousarray(init[:, : batch["agent_valid"].shape[1]]))
+            warm = dict(init=init, init_steps=c.warm_start_steps)
         pred = self.model.sample(batch, S, gens, guidance=hook, **self.sample_kwargs, **warm)
         ego_rows = [
             [r for r in (w.row_of(e) for e in eps[o].egos) if r >= 0]
@@ -352,11 +359,13 @@ def _apply_plan(
 ) -> None:
     """Write the chosen sample ``[K, F, 4]`` (window frame) as the plans of the window's
     ``plan_rows`` that the model could plan (``valid [K]``), and its normalised action
-    tokens ``[K, Ta, 2]`` as every predicted agent's warm start."""
-    seen = (window.rows >= 0) & np.asarray(valid)
-    ep.plan_tokens[window.rows[seen]] = tokens[seen]
-    ep.tokens_start[window.rows[seen]] = ep.t + 1
-    lookup = {int(r): k for k, r in enumerate(window.rows) if r >= 0}
+    tokens ``[K, Ta, 2]`` as every predicted agent's warm start. ``K`` may be below the
+    window's own agent count (``collate(trim=True)`` cuts trailing padding)."""
+    window_rows = window.rows[: len(valid)]
+    seen = (window_rows >= 0) & np.asarray(valid)
+    ep.plan_tokens[window_rows[seen]] = tokens[seen]
+    ep.tokens_start[window_rows[seen]] = ep.t + 1
+    lookup = {int(r): k for k, r in enumerate(window_rows) if r >= 0}
     rows = np.array([r for r in window.plan_rows if valid[lookup[r]]], dtype=np.int64)
     if not rows.size:
         return

@@ -67,6 +67,21 @@ class Context:
     local_tokens: torch.Tensor | None = None
     local_bias: torch.Tensor | None = None
 
+    def cut_agents(self, k: int) -> Context:
+        """The context of the first ``k`` agent slots."""
+        local = None if self.local_tokens is None else self.local_tokens[:, :k]
+        local_bias = None if self.local_bias is None else self.local_bias[:, :k]
+        return Context(
+            self.history[:, :k],
+            self.agent[:, :k],
+            self.temporal_bias[:, :k],
+            self.social_bias[..., :k, :k],
+            self.map_tokens,
+            self.map_bias,
+            local,
+            local_bias,
+        )
+
     def repeat(self, n: int) -> Context:
         """Each scene ``n`` times in a row (for ``n`` samples in one batched call)."""
         return Context(
@@ -138,6 +153,18 @@ class Block(nn.Module):
         if ctx.local_tokens is not None:  # each agent's L tokens attend to its own lanes
             x = x + self.local(self.local_norm(x), ctx.local_tokens, ctx.local_bias)
         return x + self.mlp(self.norms[3](x))
+
+
+class _AgentPad:
+    """Zero-pads an agent axis from ``k`` to ``full`` slots (padding: zeros, False)."""
+
+    def __init__(self, k: int, full: int) -> None:
+        self.extra = full - k
+
+    def __call__(self, t: torch.Tensor, dim: int) -> torch.Tensor:
+        shape = list(t.shape)
+        shape[dim] = self.extra
+        return torch.cat([t, t.new_zeros(shape)], dim)
 
 
 def _mlp(i: int, d: int, o: int) -> nn.Sequential:
@@ -223,6 +250,27 @@ class Denoiser(nn.Module):
             local_valid: ``[B, K, Ml]`` bool.
         """
         cfg = self.cfg
+        K = history.shape[1]
+        if K < cfg.num_agents:  # a trimmed batch (``window.collate(trim=True)``)
+            # Embed on the config's K slots, as the untrimmed batch would, and cut back: a
+            # matrix product's rounding on the CPU depends on its row count below about 12,
+            # and these products have B K (or B K K) rows, so a scene's context would
+            # otherwise depend on how many scenes share its call (docs/performance.md).
+            pad = _AgentPad(K, cfg.num_agents)
+            ctx = self.encode_context(
+                pad(history, 1),
+                pad(history_valid, 1),
+                pad(agent, 1),
+                pad(agent_valid, 1),
+                pad(pad(edges, 1), 2),
+                lanes,
+                lanes_valid,
+                graph_dropout,
+                generator,
+                None if local_lanes is None else pad(local_lanes, 1),
+                None if local_valid is None else pad(local_valid, 1),
+            )
+            return ctx.cut_agents(K)
         B, K, Hh, _ = history.shape
         hist = self.history_in(history)
         agent_emb = self.agent_in(agent)

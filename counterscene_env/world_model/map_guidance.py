@@ -163,35 +163,32 @@ def steer_onto_lanes(
     ok = lanes_ok[:, :, None].expand(N, M, P - 1).reshape(N, -1)
     rollout = _steering_rollout(model, normalized, state)
     with torch.no_grad():
-        ca, cb, ch, cok, first, last = _candidates(rollout(normalized), a, b, half, ok, P)
-    steer = torch.zeros_like(normalized)
+        cands = _candidates(rollout(normalized), a, b, half, ok, P)
+        # Only agents off their lanes now move: elsewhere the cost and its gradient are 0,
+        # Adam's step is 0, and the tokens stay as they are. Steering those alone is the
+        # same result for a fraction of the work (most agents keep to their lanes).
+        active = guided & (_lane_cost(rollout(normalized), cands) > 0)
+    if not active.any():
+        return normalized
+    rows = rollout.subset(active)
+    tokens = normalized[active]  # [A, Ta, 2]
+    cands = tuple(c[active] for c in cands)
+    steer = torch.zeros_like(tokens)
     steer[..., 1] = 1.0  # only the yaw-rate channel moves
-    steer = steer * guided[..., None, None]
-    delta = torch.zeros_like(normalized)
+    delta = torch.zeros_like(tokens)
     # Adam (Kingma & Ba 2015), written out: torch.optim's first use imports torch._dynamo,
     # seconds per process, most of the first replan (docs/performance.md).
     m, v = torch.zeros_like(delta), torch.zeros_like(delta)
     # Adam on a hinge overshoots: once a plan is on the lane its gradient vanishes, and the
     # prior and the momentum carry it back off. So each agent keeps its best iterate.
-    best = torch.zeros_like(normalized)
-    best_cost = torch.full(guided.shape, torch.inf, device=normalized.device)
+    best = torch.zeros_like(tokens)
+    best_cost = torch.full(tokens.shape[:1], torch.inf, device=tokens.device)
     for i in range(iterations + 1):
         with torch.enable_grad():
             x = delta.requires_grad_(True)
             change = x * steer
-            p = rollout(normalized + change)  # [N, K, F, 2]
-            dist, u = _segment_projection(p[..., None, :], ca, cb)  # [N, K, F, C]
-            gap = torch.where(cok, dist - ch, 1e3)
-            nearest = gap.argmin(-1, keepdim=True)
-            # A point is off its lane only beside a lane, not past a lane's end: a real map is
-            # a crop, and beyond its last lane nothing is known (the road goes on). Without
-            # this, a plan that runs past the end of the map is steered round in a circle
-            # toward the nearest lane end (docs/world_model.md, "Real driving").
-            beyond = ((u > 1) & last) | ((u < 0) & first)
-            beyond = beyond.gather(-1, nearest)[..., 0]
-            excess = gap.gather(-1, nearest)[..., 0].clamp(min=0)  # [N, K, F]
-            excess = torch.where(guided[..., None] & ~beyond, excess, 0.0)
-            cost = (excess**2).mean(-1) + STEER_PRIOR * (change**2).sum((-1, -2))  # [N, K]
+            cost = _lane_cost(rows(tokens + change), cands)
+            cost = cost + STEER_PRIOR * (change**2).sum((-1, -2))  # [A]
             grad = torch.autograd.grad(cost.sum(), x)[0] if i < iterations else None
         delta = delta.detach()
         cost = cost.detach()
@@ -205,7 +202,27 @@ def steer_onto_lanes(
             m_hat = m / (1 - ADAM_BETAS[0] ** (i + 1))
             v_hat = v / (1 - ADAM_BETAS[1] ** (i + 1))
             delta = delta - STEER_LR * m_hat / (v_hat.sqrt() + ADAM_EPS)
-    return (normalized + best * steer).detach()
+    out = normalized.clone()
+    out[active] = tokens + best * steer
+    return out.detach()
+
+
+def _lane_cost(p: torch.Tensor, cands: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    """``[...]`` mean squared distance [m^2] by which the centres ``p [..., F, 2]`` lie
+    outside their nearest candidate strip (``_candidates``: ``[..., F, C]`` each); a point
+    past a lane piece's end is not off its lane."""
+    ca, cb, ch, cok, first, last = cands
+    dist, u = _segment_projection(p[..., None, :], ca, cb)  # [..., F, C]
+    gap = torch.where(cok, dist - ch, 1e3)
+    nearest = gap.argmin(-1, keepdim=True)
+    # A point is off its lane only beside a lane, not past a lane's end: a real map is a
+    # crop, and beyond its last lane nothing is known (the road goes on). Without this, a
+    # plan that runs past the end of the map is steered round in a circle toward the nearest
+    # lane end (docs/world_model.md, "Real driving").
+    beyond = ((u > 1) & last) | ((u < 0) & first)
+    beyond = beyond.gather(-1, nearest)[..., 0]
+    excess = gap.gather(-1, nearest)[..., 0].clamp(min=0)  # [..., F]
+    return (torch.where(beyond, 0.0, excess) ** 2).mean(-1)
 
 
 def _candidates(
@@ -261,14 +278,25 @@ def _steering_rollout(model, normalized: torch.Tensor, state: torch.Tensor):
         v = model.rollout(normalized, state)[..., 3]  # [N, K, F] speed after each step
         before = torch.cat([state[..., None, 3], v[..., :-1]], -1)  # speed entering step k
         limit = max_yaw_rate(before, c.yaw_gain, c.lateral_limit)
-    x0, y0, yaw0 = state[..., 0, None], state[..., 1, None], state[..., 2, None]
+    return _YawRollout(model, v, limit, state[..., :3])
 
-    def rollout(tokens: torch.Tensor) -> torch.Tensor:
-        rate = model.denormalize(tokens)[..., 1].repeat_interleave(c.action_stride, -1)
-        rate = torch.maximum(torch.minimum(rate, limit), -limit)
-        yaw = yaw0 + c.dt * rate.cumsum(-1)
-        x = x0 + c.dt * (v * torch.cos(yaw)).cumsum(-1)
-        y = y0 + c.dt * (v * torch.sin(yaw)).cumsum(-1)
+
+class _YawRollout:
+    """``tokens [..., Ta, 2] -> [..., F, 2]`` centres for fixed speeds ``v [..., F]``, yaw-rate
+    bounds ``limit [..., F]`` and start poses ``pose [..., 3]`` (x, y, yaw)."""
+
+    def __init__(self, model, v: torch.Tensor, limit: torch.Tensor, pose: torch.Tensor) -> None:
+        self.model, self.v, self.limit, self.pose = model, v, limit, pose
+
+    def subset(self, rows: torch.Tensor) -> _YawRollout:
+        """The rollout of the agents ``rows`` (a boolean mask over the leading axes)."""
+        return _YawRollout(self.model, self.v[rows], self.limit[rows], self.pose[rows])
+
+    def __call__(self, tokens: torch.Tensor) -> torch.Tensor:
+        c = self.model.config
+        rate = self.model.denormalize(tokens)[..., 1].repeat_interleave(c.action_stride, -1)
+        rate = torch.maximum(torch.minimum(rate, self.limit), -self.limit)
+        yaw = self.pose[..., 2, None] + c.dt * rate.cumsum(-1)
+        x = self.pose[..., 0, None] + c.dt * (self.v * torch.cos(yaw)).cumsum(-1)
+        y = self.pose[..., 1, None] + c.dt * (self.v * torch.sin(yaw)).cumsum(-1)
         return torch.stack([x, y], -1)
-
-    return rollout

@@ -434,11 +434,19 @@ class WorldModel(nn.Module):
         if per_scene and len(generator) != B:
             raise ValueError(f"{len(generator)} generators for a batch of {B} scenes")
 
+        # Noise is drawn for the config's K agents whatever the batch's K: a batch whose
+        # trailing padding was cut (``window.collate(trim=True)``) draws the same numbers for
+        # its real agents as the full batch, and so the same samples.
+        drawn = max(K, c.num_agents)
+
         def randn() -> torch.Tensor:
             if not per_scene:
-                return torch.randn(shape, generator=generator, device=device)
-            one = (num_samples, *shape[1:])
-            return torch.cat([torch.randn(one, generator=g, device=device) for g in generator])
+                full = (B * num_samples, drawn, *shape[2:])
+                return torch.randn(full, generator=generator, device=device)[:, :K]
+            one = (num_samples, drawn, *shape[2:])
+            return torch.cat(
+                [torch.randn(one, generator=g, device=device)[:, :K] for g in generator]
+            )
 
         x, timesteps = self._start(randn(), init, init_steps, num_samples)
         for t in timesteps:
@@ -446,7 +454,7 @@ class WorldModel(nn.Module):
             with torch.no_grad():
                 out = self.denoiser(x, tt, ctx)
             # The last step adds no noise; eta = 0 never does.
-            noise = randn() if per_scene and eta > 0 and t != timesteps[-1] else None
+            noise = randn() if eta > 0 and t != timesteps[-1] else None
             x = self.scheduler.step(out, t, x, generator, eta, hook, noise).prev_sample.detach()
         # Padding agents get zero physical actions: a clean, finite "keep going" plan.
         still = self.normalize(torch.zeros(2, device=device))

@@ -228,7 +228,30 @@ def lane_segments(scene: Scene, length: float, points: int) -> tuple[np.ndarray,
     return np.stack(segs), np.asarray(widths)
 
 
-def collate(windows: Sequence[dict[str, np.ndarray]]) -> dict[str, torch.Tensor]:
+#: Keys with an agent axis (axis 0 of a window).
+_AGENT_KEYS = ("history", "history_valid", "extents", "agent_valid")
+
+
+def collate(
+    windows: Sequence[dict[str, np.ndarray]], trim: bool = False
+) -> dict[str, torch.Tensor]:
     """Stack the model's keys (:data:`MODEL_KEYS`) of several windows into a batch
-    (leading axis ``B``)."""
-    return {k: torch.from_numpy(np.stack([w[k] for w in windows])) for k in MODEL_KEYS}
+    (leading axis ``B``).
+
+    ``trim``: cut the agent axis to the most agents any window holds (:func:`agent_count`),
+    so the batch's ``K`` may be below the config's. Windows fill their slots from the front
+    (``make_window``) and the model masks padding agents out of every attention, loss and
+    choice, so the real agents' samples are those of the padded batch up to rounding, and the
+    sampler's cost falls with ``K`` (a replan's window holds 3-8 of 12 agents at the
+    generated intersection, docs/performance.md).
+    """
+    batch = {k: np.stack([w[k] for w in windows]) for k in MODEL_KEYS}
+    if trim:
+        k = max(agent_count(w) for w in windows)
+        batch |= {key: np.ascontiguousarray(batch[key][:, :k]) for key in _AGENT_KEYS}
+    return {key: torch.from_numpy(v) for key, v in batch.items()}
+
+
+def agent_count(window: dict[str, np.ndarray]) -> int:
+    """Agent slots a window fills (at least 1): its agent axis trimmed of trailing padding."""
+    return max(int(np.flatnonzero(window["agent_valid"]).max(initial=0)) + 1, 1)
