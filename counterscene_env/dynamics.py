@@ -68,21 +68,23 @@ def unicycle_rollout(
     Returns:
         ``[..., T, 4]`` states after each step (the start state is not repeated).
     """
-    x, y, yaw, v = state.unbind(-1)
-    acc, rate = actions.unbind(-1)
-    out = []
-    for k in range(actions.shape[-2]):
-        a, w = acc[..., k], rate[..., k]
-        if bound:
-            a = a.clamp(ACC_MIN, ACC_MAX)
-            limit = max_yaw_rate(v, yaw_gain, lateral_limit)
-            w = torch.maximum(torch.minimum(w, limit), -limit)
-        v = (v + a * dt).clamp(min=0.0)
-        yaw = yaw + w * dt
-        x = x + dt * v * torch.cos(yaw)
-        y = y + dt * v * torch.sin(yaw)
-        out.append(torch.stack([x, y, yaw, v], -1))
-    return torch.stack(out, -2)
+    x0, y0, yaw0, v0 = (c[..., None] for c in state.unbind(-1))
+    acc, rate = actions.unbind(-1)  # [..., T]
+    if bound:
+        acc = acc.clamp(ACC_MIN, ACC_MAX)
+    # The recursion in closed form, so the rollout is a few whole-tensor ops instead of a
+    # loop over steps (it runs inside every guidance and steering gradient). The speed floor
+    # v[k] = max(v[k-1] + a[k] dt, 0) is Lindley's recursion: with S[k] = v[0] + dt sum a[1..k],
+    # v[k] = S[k] - min(0, S[1], ..., S[k]).
+    s = v0 + torch.cumsum(acc * dt, -1)
+    v = s - torch.cummin(s.clamp(max=0.0), -1).values
+    if bound:  # the bound of step k is set by the speed entering it
+        limit = max_yaw_rate(torch.cat([v0, v[..., :-1]], -1), yaw_gain, lateral_limit)
+        rate = torch.maximum(torch.minimum(rate, limit), -limit)
+    yaw = yaw0 + torch.cumsum(rate * dt, -1)
+    x = x0 + torch.cumsum(dt * v * torch.cos(yaw), -1)
+    y = y0 + torch.cumsum(dt * v * torch.sin(yaw), -1)
+    return torch.stack([x, y, yaw, v], -1)
 
 
 def actions_from_states(states: torch.Tensor, dt: float = 0.1) -> torch.Tensor:
