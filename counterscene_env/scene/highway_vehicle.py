@@ -11,8 +11,9 @@ highway-env's IDM/MOBIL vehicle with two changes, neither of which alters what i
      ``distance_with_heading`` to every lane of the network (``RoadNetwork.
      get_closest_lane_index``). That distance is never below the point's Euclidean distance
      to the lane's centre line (``|lateral|`` plus the overshoot past either end bounds it
-     from above), so a lane whose bounding box is farther away than the distance to the
-     vehicle's current lane cannot be the closest. The remaining lanes are searched with
+     from above) plus, for a straight lane, the heading difference; so a lane whose bounding
+     box (plus heading difference) is farther than the vehicle's current lane cannot be the
+     closest. The remaining lanes are searched with
      highway-env's own function in the network's order, so ties go as they always did.
   2. **Constant-speed predictions.** ``RegulatedRoad.enforce_road_rules`` predicts both
      vehicles of every pair along their routes, so each vehicle ``n - 1`` times per call
@@ -71,14 +72,16 @@ class _LaneBoxes:
     (``[L, 4]``: x min, y min, x max, y max, m; -inf/inf for lane kinds we cannot bound)."""
 
     def __init__(self, network) -> None:
-        self.indexes, self.lanes, boxes = [], [], []
+        self.indexes, self.lanes, boxes, headings = [], [], [], []
         for _from, to_dict in network.graph.items():
             for _to, lanes in to_dict.items():
                 for _id, lane in enumerate(lanes):
                     self.indexes.append((_from, _to, _id))
                     self.lanes.append(lane)
                     boxes.append(_box(lane))
+                    headings.append(_fixed_heading(lane))
         self.boxes = np.array(boxes, dtype=float).reshape(-1, 4)
+        self.headings = np.array(headings, dtype=float)
         self.size = len(self.lanes)
         self.known = set(self.indexes)
 
@@ -89,10 +92,24 @@ def _box(lane) -> tuple[float, float, float, float]:
     if isinstance(lane, StraightLane) and not isinstance(lane, SineLane):
         (x0, y0), (x1, y1) = lane.start, lane.end
         return min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1)
-    if isinstance(lane, CircularLane):  # the whole circle's box holds any arc of it
+    if isinstance(lane, CircularLane):
+        # Points along the arc, and the box widened by the sagitta of one step between
+        # them, which the arc between two points never leaves.
+        n = 64
+        phase = np.linspace(lane.start_phase, lane.end_phase, n + 1)
         (cx, cy), r = lane.center, lane.radius
-        return cx - r, cy - r, cx + r, cy + r
+        x, y = cx + r * np.cos(phase), cy + r * np.sin(phase)
+        pad = r * (1 - np.cos(abs(lane.end_phase - lane.start_phase) / n / 2)) + 1e-6
+        return x.min() - pad, y.min() - pad, x.max() + pad, y.max() + pad
     return -np.inf, -np.inf, np.inf, np.inf  # never pruned
+
+
+def _fixed_heading(lane) -> float:
+    """The heading of a straight lane [rad], which its ``distance_with_heading`` adds
+    ``|wrap(heading - this)|`` for; NaN for a lane whose heading varies."""
+    if isinstance(lane, StraightLane) and not isinstance(lane, SineLane):
+        return float(lane.heading)
+    return np.nan
 
 
 #: Lane boxes per road network, built on first use; dropped with the network.
@@ -114,6 +131,9 @@ def closest_lane_index(network, position: np.ndarray, heading: float, current) -
         np.maximum(np.maximum(b[:, 1] - position[1], position[1] - b[:, 3]), 0.0),
     )
     best, best_index = np.inf, None
+    # A straight lane's heading term is known without its coordinates: it adds to the bound.
+    turn = np.abs((heading - boxes.headings + np.pi) % (2 * np.pi) - np.pi)
+    gap = gap + np.where(np.isnan(turn), 0.0, turn)
     # The slack keeps a lane that ties with the current one despite rounding in ``gap``.
     for k in np.flatnonzero(gap <= bound + 1e-9):  # in network order, as highway-env searches
         d = boxes.lanes[k].distance_with_heading(position, heading)
