@@ -8,6 +8,8 @@ import numpy as np
 from gymnasium import spaces
 from highway_env.envs.common.observation import KinematicObservation
 
+from counterscene_env.envs.kinematics import observe_kinematics
+
 
 def check_action(space: spaces.Space, action: Any, who: str = "action") -> None:
     """Refuse an action that does not fit ``space``, before anything is applied: not numbers
@@ -103,8 +105,15 @@ class RowCappedKinematics(KinematicObservation):
     With ``vehicles_count = 1`` highway-env asks the road for the ``0`` nearest vehicles,
     which it reads as "no limit", and returns every vehicle: an observation outside its
     ``(1, F)`` space. Every other count already gives exactly ``vehicles_count`` rows.
+
+    The rows are computed without pandas (:func:`~counterscene_env.envs.kinematics.
+    observe_kinematics`, the same values bit for bit); highway-env's own method runs for the
+    options that does not cover.
     """
 
     def observe(self) -> np.ndarray:
+        fast = observe_kinematics(self)
+        if fast is not None:
+            return fast
         obs = super().observe()
         return obs[: self.vehicles_count] if obs.ndim == 2 else obs
