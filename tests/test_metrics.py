@@ -274,7 +274,10 @@ def test_evaluate_scene_record_is_json_and_complete(road):
         *metrics.SCENE_KEYS,
     }
     assert list(back["per_second"]) == [str(h) for h in range(1, 11)]
-    assert set(back["per_second"]["4"]) == set(metrics.PER_SECOND_KEYS)
+    assert set(back["per_second"]["4"]) == {
+        *metrics.PER_SECOND_KEYS,
+        *metrics.EXTRA_PER_SECOND_KEYS,
+    }
     assert back["rollout_s"] == pytest.approx(10.0)
     agg = metrics.aggregate([res, back])
     assert agg["per_second"]["4"]["ADE"] == pytest.approx(res["per_second"]["4"]["ADE"])

@@ -11,6 +11,7 @@ Subcommands import what they need when they run, so ``counterscene --help`` is i
 - ``stress``: stress-test an ego planner against guided world-model traffic (paper's table).
 - ``report``: (re)build a stress run's report: html, markdown, plots, videos, command line.
 - ``compare``: several stress runs side by side, with intervals and paired tests.
+- ``paper-tables``: the paper's comparisons (every row on the same episodes), with intervals.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from counterscene_env.cli import data, model, report, run
+from counterscene_env.cli import data, model, paper, report, run
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -55,4 +56,5 @@ def _parser() -> argparse.ArgumentParser:
     run.add_stress(sub)
     report.add_report(sub)
     report.add_compare(sub)
+    paper.add_paper_tables(sub)
     return parser

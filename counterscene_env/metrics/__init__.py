@@ -27,6 +27,7 @@ Where we depart from the paper (docs/design.md, "Metric definitions" and
 """
 
 from counterscene_env.metrics.common import (
+    EXTRA_PER_SECOND_KEYS,
     GROUPS,
     HARD_BRAKE_THRESHOLD,
     PER_SECOND_KEYS,
@@ -65,6 +66,7 @@ from counterscene_env.metrics.safety import (
 )
 
 __all__ = [
+    "EXTRA_PER_SECOND_KEYS",
     "GROUPS",
     "HARD_BRAKE_THRESHOLD",
     "PER_SECOND_KEYS",

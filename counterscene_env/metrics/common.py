@@ -14,8 +14,12 @@ from counterscene_env.scene.core import Scene
 HARD_BRAKE_THRESHOLD = -3.0
 
 
-#: Per-second keys of :func:`evaluate_scene` and :func:`aggregate`.
+#: Per-second keys of :func:`evaluate_scene` and :func:`aggregate`: the paper's table.
 PER_SECOND_KEYS = ("ADE", "FDE", "ORR", "HBR", "CR")
+
+#: Further per-second keys of :func:`evaluate_scene` (``counterscene paper-tables``): the
+#: ego-adversary CR within h, and the ego's strongest braking within h [m/s^2].
+EXTRA_PER_SECOND_KEYS = ("CR_adv", "DEC")
 
 
 #: Whole-rollout keys of :func:`evaluate_scene` (numbers averaged by :func:`aggregate`).

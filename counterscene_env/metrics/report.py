@@ -65,8 +65,10 @@ def evaluate_scene(
 
     Returns:
         ``{"scenario_id", "rollout_s", "adversary_id", "per_second", <SCENE_KEYS>}`` where
-        ``per_second[str(h)]`` holds ``ADE``/``FDE`` (m), ``ORR``, ``HBR`` (= hbr_ego within h)
-        and ``CR`` (ego collided at or before h) for each h, and the whole-rollout values are
+        ``per_second[str(h)]`` holds ``ADE``/``FDE`` (m), ``ORR``, ``HBR`` (= hbr_ego within h),
+        ``CR`` (ego collided at or before h), ``CR_adv`` (with the adversary; NaN without one)
+        and ``DEC`` (the ego's strongest braking within h, m/s^2, so ``DEC > x`` is HBR at
+        ``-x``) for each h, and the whole-rollout values are
         ``cr``, ``cr_all_agents``, ``cr_non_ego``, ``cr_ego_adversary``, ``hbr_ego``,
         ``hbr_all``, ``hbr_paper``, ``orr`` (fractions; also split into ``orr_parked`` over the
         vehicles parked for the whole rollout, :func:`parked_agents`, and ``orr_moving`` over
@@ -89,6 +91,16 @@ def evaluate_scene(
         rows = non_ego_vehicles(sim)
         dist, ok = dist[rows], ok[rows]
 
+    adv_hits = None
+    if adversary is not None:
+        adv = adversary_index(sim, adversary)
+        adversary_id = str(sim.agent_ids[adv])
+        adv_hits = ego_adversary_collision_steps(sim, adv)
+        cr_adv = float(adv_hits.any())
+        clearance = min_clearance(sim, adv)
+    else:
+        adversary_id, cr_adv, clearance = None, math.nan, math.nan
+
     per_second = {}
     steps = np.arange(rollout_steps(sim))
     for h in horizons:
@@ -101,15 +113,10 @@ def evaluate_scene(
             "ORR": off_road_rate_of(sim, off, h, include_ego=True),
             "HBR": float(flags[e][brake_in].any()) if brake_in.any() else math.nan,
             "CR": float(ego_hits[steps < n].any()),
+            "CR_adv": math.nan if adv_hits is None else float(adv_hits[steps < n].any()),
+            # Any braking threshold's HBR within h: DEC > threshold (paper tables).
+            "DEC": max(0.0, -float(acc[e][brake_in].min())) if brake_in.any() else math.nan,
         }
-
-    if adversary is not None:
-        adv = adversary_index(sim, adversary)
-        adversary_id = str(sim.agent_ids[adv])
-        cr_adv = float(ego_adversary_collision_steps(sim, adv).any())
-        clearance = min_clearance(sim, adv)
-    else:
-        adversary_id, cr_adv, clearance = None, math.nan, math.nan
 
     return {
         "scenario_id": str(sim.scenario_id),

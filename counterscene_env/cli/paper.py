@@ -1,0 +1,125 @@
+"""``counterscene paper-tables``: the paper's comparisons in one command."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+
+from counterscene_env.cli.common import add_json_flag
+
+
+def add_paper_tables(sub) -> None:
+    """Register ``counterscene paper-tables``."""
+    pp = sub.add_parser(
+        "paper-tables",
+        help="the paper's tables (main, selection, ablation, real logs) with intervals",
+        description=(
+            "Run every row of the paper's comparisons (unguided world model; random, "
+            "distance, TTC and causal selectors with full guidance; the guidance ablations) "
+            "on the same episodes, one stress run per row and scenario in OUT/<scenario>/"
+            "<row>/ (resumable: rerun the command to continue), and write OUT/tables.md and "
+            "OUT/tables.json: every figure with its 95 %% interval, every row paired with "
+            "CounterScene, the paper's own figures beside ours (docs/reproducing_the_paper.md)."
+        ),
+    )
+    pp.add_argument("--episodes", type=int, default=200, help="episodes per row (default 200)")
+    pp.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    pp.add_argument(
+        "--scenario",
+        nargs="+",
+        default=None,
+        metavar="S",
+        help="generated roads (default: intersection merge; 'none' for real logs only)",
+    )
+    pp.add_argument(
+        "--scenarionet",
+        nargs="*",
+        default=[],
+        metavar="DIR",
+        help="folders of ScenarioNet real logs (the real-logs table)",
+    )
+    pp.add_argument(
+        "--commonroad",
+        nargs="*",
+        default=[],
+        metavar="DIR",
+        help="folders of CommonRoad scenarios (the real-logs table)",
+    )
+    pp.add_argument("--planner", default="idm", help="ego planner (default idm)")
+    pp.add_argument("--seed", type=int, default=300000, help="seed of episode 0 (default 300000)")
+    pp.add_argument("--workers", type=int, default=1, help="processes per row (default 1)")
+    pp.add_argument("--batch", type=int, default=4, help="episodes per batch (default 4)")
+    pp.add_argument("--model", default="default", help="model directory (default: shipped)")
+    pp.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_json_flag(pp, "print tables.json's tables as one JSON object")
+    pp.set_defaults(func=_cmd_paper_tables)
+
+
+def _cmd_paper_tables(args: argparse.Namespace) -> int:
+    from counterscene_env.config import COMMONROAD_PREFIX, SCENARIONET_PREFIX
+    from counterscene_env.report import paper_document
+    from counterscene_env.scene.sources import check_spec
+    from counterscene_env.stress import paper
+
+    if args.episodes < 1:
+        raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    roads = ["intersection", "merge"] if args.scenario is None else args.scenario
+    roads = [] if roads == ["none"] else roads
+    specs = [check_spec(s) for s in roads]
+    specs += [check_spec(SCENARIONET_PREFIX + d) for d in args.scenarionet]
+    specs += [check_spec(COMMONROAD_PREFIX + d) for d in args.commonroad]
+    if not specs:
+        raise ValueError("nothing to run: give --scenario, --scenarionet or --commonroad")
+
+    def on_row(where: str, row: str, done: int) -> None:
+        if not args.quiet:
+            left = args.episodes - min(done, args.episodes)
+            print(f"{where} / {row}: {left} of {args.episodes} episodes to run", file=sys.stderr)
+
+    results = paper.run_rows(
+        args.out,
+        specs,
+        args.episodes,
+        args.seed,
+        args.planner,
+        args.model,
+        args.workers,
+        args.batch,
+        progress=not args.quiet,
+        on_row=on_row,
+    )
+    seconds: dict[str, dict[str, float]] = {}
+    for where, runs in results.items():  # compute time from the records (resumes included)
+        for row, records in runs.items():
+            seconds.setdefault(where, {})[row] = sum(float(r.get("seconds", 0)) for r in records)
+    tables_of = {
+        paper.scenario_dir(s): paper.REAL_TABLES if paper.is_real(s) else paper.GENERATED_TABLES
+        for s in specs
+    }
+    built = paper_document.build(
+        results,
+        paper.TABLE_ROWS,
+        tables_of,
+        {r.name: r.label for r in paper.ROWS.values()},
+        {r.name: r.paper for r in paper.ROWS.values()},
+    )
+    meta = {
+        "command": "counterscene " + shlex.join(sys.argv[1:]),
+        "planner": args.planner,
+        "episodes": args.episodes,
+        "seed": args.seed,
+        "model": args.model,
+    }
+    page = paper_document.write(args.out, built, meta, seconds)
+    if args.json:
+        import json
+
+        from counterscene_env.metrics import json_safe
+
+        print(json.dumps(json_safe(json.loads((page.parent / "tables.json").read_text()))))
+        return 0
+    print(page.read_text(), end="")
+    return 0

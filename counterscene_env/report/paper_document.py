@@ -1,0 +1,156 @@
+"""``counterscene paper-tables`` output: ``tables.md`` (the page ``docs/reproducing_the_paper.md``
+is made from) and ``tables.json`` (every figure with its interval and paired test), written
+from the runs' records by ``report.paper_tables``. Compute times go to ``timings.json``,
+apart from the results, so two runs of the same episodes give identical tables.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+from counterscene_env.metrics import json_safe
+from counterscene_env.report.document import fmt, interval
+from counterscene_env.report.paper_tables import (
+    COLUMNS,
+    METRICS,
+    PAIRED,
+    PAPER,
+    PAPER_SOURCE,
+    TITLES,
+    table,
+    to_json,
+)
+
+
+def build(
+    results: dict[str, dict[str, list[dict]]],
+    table_rows: dict[str, Sequence[str]],
+    tables_of: dict[str, Sequence[str]],
+    labels: dict[str, str],
+    paper_names: dict[str, str | None],
+) -> dict:
+    """``{scenario: {table: cells}}`` (``paper_tables.table``) for every table a scenario
+    has (``tables_of[scenario]``), with the rows of ``table_rows[table]`` it ran."""
+    out: dict = {}
+    for where, runs in results.items():
+        for name in tables_of[where]:
+            rows = {r: runs[r] for r in table_rows[name] if r in runs}
+            if rows:
+                out.setdefault(where, {})[name] = table(name, rows)
+    return {"tables": out, "labels": labels, "paper_names": paper_names}
+
+
+def write(out: str | Path, built: dict, meta: dict, seconds: dict[str, dict[str, float]]) -> Path:
+    """Write ``tables.json``, ``tables.md`` and ``timings.json`` to ``out``; returns the
+    markdown's path. ``meta``: the command, planner, episodes, seed, model; ``seconds``:
+    ``{scenario: {row: compute seconds}}``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    tables = built["tables"]
+    doc = {
+        **meta,
+        "tables": {w: {t: to_json(c) for t, c in ts.items()} for w, ts in tables.items()},
+        "paper": {t: {"source": PAPER_SOURCE[t], "rows": PAPER[t]} for t in PAPER},
+    }
+    (out / "tables.json").write_text(json.dumps(json_safe(doc), indent=1) + "\n")
+    (out / "timings.json").write_text(json.dumps(json_safe({"row_seconds": seconds}), indent=1))
+    page = out / "tables.md"
+    page.write_text(markdown(built, meta, seconds))
+    return page
+
+
+def markdown(built: dict, meta: dict, seconds: dict[str, dict[str, float]]) -> str:
+    """The tables as one markdown document."""
+    lines = [
+        "# The paper's tables",
+        "",
+        f"Command: `{meta['command']}`",
+        "",
+        f"Planner `{meta['planner']}`, {meta['episodes']} episodes per row from seed "
+        f"{meta['seed']} (every row on the same scenes and noise), model `{meta['model']}`.",
+        "Values: `value [95 % interval]`; rates and ORR in %, ADE and FDE in m. A single "
+        "horizon's rate has a Wilson interval, means and averages over several seconds a "
+        "bootstrap interval over episodes. CR ego-adversary counts an episode without an "
+        "adversary as no collision with one. HBR -3 and HBR -6: the ego brakes harder than "
+        "3 or 6 m/s² within the horizon.",
+        "",
+        "The paper's rows are its own figures (its data set, its models), printed for "
+        "reference, not comparable data; its HBR is a share of all agents' steps, not the "
+        "ego's, and its CR the ego-adversary one.",
+        "",
+    ]
+    for where, tables in built["tables"].items():
+        lines += [f"## {where}", ""]
+        for name, cells in tables.items():
+            lines += _table(name, cells, built, seconds.get(where, {}))
+    return "\n".join(lines) + "\n"
+
+
+def _table(name: str, cells: dict, built: dict, seconds: dict[str, float]) -> list[str]:
+    labels, paper_names = built["labels"], built["paper_names"]
+    rows = list(cells)
+    took = sum(seconds.get(r, 0.0) for r in rows)
+    lines = [f"### {TITLES[name]}", ""]
+    lines += [
+        f"Compute time of its rows: {took / 60:.1f} min (rows shared between tables "
+        "count in each).",
+        "",
+    ]
+    head = (
+        "| row | n | "
+        + " | ".join(
+            f"{label} ({'%' if unit in ('rate', 'fraction') else unit})"
+            for label, unit, _ in METRICS.values()
+        )
+        + " |"
+    )
+    for column in COLUMNS[name]:
+        lines += [f"#### {column}", "", head, "|" + "---|" * (len(METRICS) + 2)]
+        for row in rows:
+            metrics = cells[row][column]
+            n = max(c.estimate.n for c in metrics.values())
+            vals = [interval(metrics[k].estimate, METRICS[k][1]) for k in METRICS]
+            lines.append(f"| {labels[row]} | {n} | " + " | ".join(vals) + " |")
+        for row in rows:
+            figures = PAPER.get(name, {}).get(paper_names.get(row) or "", {}).get(column)
+            if figures is not None:
+                lines.append(_paper_row(paper_names[row], name, figures))
+        lines += ["", _paired_lines(rows, cells, column, labels), ""]
+    return lines
+
+
+def _paper_row(paper_name: str, name: str, figures: tuple) -> str:
+    """The paper's (ADE, FDE, ORR, HBR, CR) placed in our columns (HBR -> HBR -3, CR ->
+    CR ego-adversary), marked as the paper's."""
+    ade, fde, orr, hbr, cr = figures
+    by_key = {"ADE": ade, "FDE": fde, "ORR": orr, "HBR3": hbr, "CR_adv": cr}
+    vals = [fmt(by_key[k], METRICS[k][1]) if k in by_key else "" for k in METRICS]
+    return f"| *paper: {paper_name} ({PAPER_SOURCE[name]})* | | " + " | ".join(vals) + " |"
+
+
+def _paired_lines(rows: list[str], cells: dict, column: str, labels: dict) -> str:
+    """One line per row: its difference to the reference row, and whether it is outside
+    the noise."""
+    out = [f"Paired with {labels[rows[0]]} ({column}, row minus reference):", ""]
+    for row in rows[1:]:
+        parts = []
+        for key in PAIRED:
+            test = cells[row][column][key].paired
+            if test is None or math.isnan(test.difference):
+                parts.append(f"{METRICS[key][0]} n/a")
+                continue
+            unit = METRICS[key][1]
+            scale, suffix = (100, " points") if unit in ("rate", "fraction") else (1, " m")
+            verdict = "outside the noise" if test.significant else "inside the noise"
+            p = "" if test.p_value is None else f", p = {test.p_value:.2g}"
+            parts.append(
+                f"{METRICS[key][0]} {scale * test.difference:+.3g}{suffix} "
+                f"[{scale * test.low:+.3g}, {scale * test.high:+.3g}]{p}, {verdict}"
+            )
+        out.append(
+            f"- {labels[row]} (n = {cells[row][column][PAIRED[0]].paired.n}): " + "; ".join(parts)
+        )
+    return "\n".join(out)

@@ -1,0 +1,189 @@
+"""The runs behind the paper's comparisons (``counterscene paper-tables``).
+
+Every table of the paper compares settings of one method on one set of episodes. Here each
+setting is a *row*: a stress run whose closed-loop config differs from the default in the
+keys the row names, on the same scenario, planner, seeds and episodes as every other row, so
+that any two rows can be compared episode by episode (paired tests, ``report.paper_tables``).
+
+Rows and the paper's tables they feed (the paper's names in brackets):
+
+- ``unguided``: the world model with guidance ``none`` (the adversary is still selected, so
+  its collisions with the ego are counted the same way).
+- ``random``, ``distance`` [SafeSim], ``ttc`` [CCDiff]: the baseline selectors with the full
+  guidance; ``counterscene``: the causal selector with the full guidance [CounterScene, Ours,
+  Full].
+- ``no_jerk``, ``no_conflict_aware``, ``no_progressive``, ``no_adaptive``, ``minimal``: the
+  guidance ablations with the causal selector.
+
+Runs live in ``OUT/<scenario>/<row>/`` as ordinary ``counterscene stress --out`` directories
+(``counterscene report`` and ``compare`` read them too) and resume where they stopped: a row
+that holds all its episodes is not run again.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from counterscene_env.config import COMMONROAD_PREFIX, SCENARIONET_PREFIX, Scenario
+from counterscene_env.sim.config import SimConfig
+from counterscene_env.stress.config import StressConfig, run_identity
+from counterscene_env.stress.episodes import run_episodes
+from counterscene_env.stress.log import EpisodeLog, write_summary
+from counterscene_env.stress.summary import summarize
+from counterscene_env.stress.workers import run_parallel
+
+
+@dataclass(frozen=True)
+class Row:
+    """One setting compared in the paper's tables.
+
+    Attributes:
+        name: directory and JSON name.
+        label: its name in our tables.
+        sim: the ``SimConfig`` keys it sets (the others keep their defaults).
+        paper: its name in the paper's tables (None: the paper has no such row).
+    """
+
+    name: str
+    label: str
+    sim: dict = field(default_factory=dict)
+    paper: str | None = None
+
+
+ROWS = {
+    r.name: r
+    for r in (
+        Row("unguided", "world model, unguided", {"guidance": "none"}),
+        Row("random", "random selector", {"selector": "random"}, "Random"),
+        Row("distance", "distance selector", {"selector": "distance"}, "SafeSim"),
+        Row("ttc", "TTC selector", {"selector": "ttc"}, "CCDiff"),
+        Row("counterscene", "CounterScene (causal, full guidance)", {}, "CounterScene"),
+        Row("no_jerk", "no jerk", {"guidance": "no_jerk"}, "No Jerk"),
+        Row(
+            "no_conflict_aware",
+            "no conflict-aware weighting",
+            {"guidance": "no_conflict_aware"},
+            "No Conflict Aware",
+        ),
+        Row(
+            "no_progressive",
+            "no progressive schedule",
+            {"guidance": "no_progressive"},
+            "No Progressive",
+        ),
+        Row("no_adaptive", "no adaptive compression", {"guidance": "no_adaptive"}, "No Adaptive"),
+        Row("minimal", "minimal guidance", {"guidance": "minimal"}, "Minimal"),
+    )
+}
+
+#: The rows of each table (``report.paper_tables``), the reference row first.
+TABLES = {
+    "main": ("counterscene", "unguided", "random", "distance", "ttc"),
+    "selection": ("counterscene", "random", "distance", "ttc"),
+    "ablation": (
+        "counterscene",
+        "no_jerk",
+        "no_conflict_aware",
+        "no_progressive",
+        "no_adaptive",
+        "minimal",
+    ),
+}
+#: Tables of the generated roads; real logs get the main rows at 3, 5 and 7 s (the paper's
+#: zero-shot table).
+GENERATED_TABLES = ("main", "selection", "ablation")
+REAL_TABLES = ("real",)
+TABLE_ROWS = {**TABLES, "real": TABLES["main"]}
+
+
+def is_real(spec: str) -> bool:
+    """Whether a scenario spec is a set of real logs (not a generated road)."""
+    return spec not in Scenario.values()
+
+
+def rows_for(spec: str) -> tuple[str, ...]:
+    """The rows a scenario needs, in run order (the reference row first)."""
+    tables = REAL_TABLES if is_real(spec) else GENERATED_TABLES
+    out: list[str] = []
+    for table in tables:
+        out += [r for r in TABLE_ROWS[table] if r not in out]
+    return tuple(out)
+
+
+def scenario_dir(spec: str) -> str:
+    """A directory name for a scenario spec: the road, or ``scenarionet-<name>`` /
+    ``commonroad-<name>`` after the folder of real logs."""
+    for prefix, tag in ((SCENARIONET_PREFIX, "scenarionet"), (COMMONROAD_PREFIX, "commonroad")):
+        if spec.startswith(prefix):
+            name = Path(spec[len(prefix) :].rstrip("/")).name
+            return f"{tag}-{re.sub(r'[^A-Za-z0-9_.-]', '_', name)}"
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", spec)
+
+
+def row_config(
+    spec: str, row: Row, episodes: int, seed: int, planner: str, batch: int
+) -> StressConfig:
+    """The stress run of one row on one scenario."""
+    return StressConfig(
+        scenario=spec,
+        episodes=episodes,
+        seed=seed,
+        planner=planner,
+        sim=SimConfig.from_mapping(row.sim),
+        batch=batch,
+    )
+
+
+def run_rows(
+    out: str | Path,
+    specs: Sequence[str],
+    episodes: int,
+    seed: int,
+    planner: str = "idm",
+    model: str = "default",
+    workers: int = 1,
+    batch: int = 4,
+    progress: bool = True,
+    on_row: Callable[[str, str, int], None] | None = None,
+) -> dict[str, dict[str, list[dict]]]:
+    """Run (or finish) every row each scenario needs; ``{scenario dir: {row: records}}``.
+
+    ``on_row(scenario dir, row, episodes already done)`` is called before each row runs.
+    Every config is checked before the first episode runs, so a bad spec or planner fails
+    at once and leaves nothing behind.
+    """
+    from counterscene_env.world_model.checkpoint import load_model
+
+    plan = []
+    for spec in specs:
+        for name in rows_for(spec):
+            config = row_config(spec, ROWS[name], episodes, seed, planner, batch)
+            if config.is_sb3:
+                raise ValueError("paper-tables runs the built-in planners (idm, log, ...)")
+            plan.append((scenario_dir(spec), name, config))
+    world_model = load_model(model) if workers == 1 else None
+    results: dict[str, dict[str, list[dict]]] = {}
+    for where, name, config in plan:
+        directory = Path(out) / where / name
+        log = EpisodeLog(
+            directory,
+            run_identity(config, model),
+            resume=True,
+            summarize=lambda r, c=config: summarize(r[: c.episodes], c),
+        )
+        done = len(log.records[: config.episodes])
+        if on_row is not None:
+            on_row(where, name, done)
+        if done < config.episodes:
+            if workers > 1:
+                records = run_parallel(config, workers, model, progress=progress, log=log)
+            else:
+                records = run_episodes(world_model, config, progress=progress, log=log)
+        else:
+            records = log.records[: config.episodes]
+        write_summary(directory, summarize(records, config))
+        results.setdefault(where, {})[name] = records
+    return results
