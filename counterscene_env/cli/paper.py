@@ -6,7 +6,7 @@ import argparse
 import shlex
 import sys
 
-from counterscene_env.cli.common import add_json_flag
+from counterscene_env.cli.common import add_json_flag, parse_overrides
 
 
 def add_paper_tables(sub) -> None:
@@ -51,6 +51,14 @@ def add_paper_tables(sub) -> None:
     pp.add_argument("--workers", type=int, default=1, help="processes per row (default 1)")
     pp.add_argument("--batch", type=int, default=4, help="episodes per batch (default 4)")
     pp.add_argument("--model", default="default", help="model directory (default: shipped)")
+    pp.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="closed-loop settings for every row (JSON values), e.g. num_samples=16 "
+        "duration=7; the rows' own keys (selector, guidance) cannot be set",
+    )
     pp.add_argument("--quiet", action="store_true", help="no progress bars")
     add_json_flag(pp, "print tables.json's tables as one JSON object")
     pp.set_defaults(func=_cmd_paper_tables)
@@ -66,6 +74,7 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
     if args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    base = parse_overrides(args.set)
     roads = ["intersection", "merge"] if args.scenario is None else args.scenario
     roads = [] if roads == ["none"] else roads
     specs = [check_spec(s) for s in roads]
@@ -88,6 +97,7 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         args.model,
         args.workers,
         args.batch,
+        base=base,
         progress=not args.quiet,
         on_row=on_row,
     )
@@ -112,6 +122,7 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         "episodes": args.episodes,
         "seed": args.seed,
         "model": args.model,
+        "settings": base,
     }
     page = paper_document.write(args.out, built, meta, seconds)
     if args.json:

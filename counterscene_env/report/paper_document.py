@@ -70,7 +70,8 @@ def markdown(built: dict, meta: dict, seconds: dict[str, dict[str, float]]) -> s
         f"Command: `{meta['command']}`",
         "",
         f"Planner `{meta['planner']}`, {meta['episodes']} episodes per row from seed "
-        f"{meta['seed']} (every row on the same scenes and noise), model `{meta['model']}`.",
+        f"{meta['seed']} (every row on the same scenes and noise), model `{meta['model']}`"
+        + (f", closed-loop settings {meta['settings']}." if meta.get("settings") else "."),
         "Values: `value [95 % interval]`; rates and ORR in %, ADE and FDE in m. A single "
         "horizon's rate has a Wilson interval, means and averages over several seconds a "
         "bootstrap interval over episodes. CR ego-adversary counts an episode without an "

@@ -30,6 +30,7 @@ The paper's own figures (:data:`PAPER`) are printed beside ours as what they are
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -184,7 +185,8 @@ def paired(reference: np.ndarray, other: np.ndarray, is_rate: bool) -> Paired:
     n = min(len(reference), len(other))
     if reference.shape[1] == 1 and is_rate:
         return stats.paired_rate(reference[:n, 0], other[:n, 0])
-    with np.errstate(invalid="ignore"):
+    with warnings.catch_warnings():  # an episode with no value in the columns: NaN, left out
+        warnings.simplefilter("ignore", RuntimeWarning)
         a, b = np.nanmean(reference[:n], 1), np.nanmean(other[:n], 1)
     return stats.paired_mean(a, b)
 

@@ -114,25 +114,42 @@ def rows_for(spec: str) -> tuple[str, ...]:
 
 
 def scenario_dir(spec: str) -> str:
-    """A directory name for a scenario spec: the road, or ``scenarionet-<name>`` /
-    ``commonroad-<name>`` after the folder of real logs."""
+    """A directory name for a scenario spec: the road, ``scenarionet-<name>`` /
+    ``commonroad-<name>`` after the folder of real logs, or a stored dataset's own name."""
     for prefix, tag in ((SCENARIONET_PREFIX, "scenarionet"), (COMMONROAD_PREFIX, "commonroad")):
         if spec.startswith(prefix):
             name = Path(spec[len(prefix) :].rstrip("/")).name
             return f"{tag}-{re.sub(r'[^A-Za-z0-9_.-]', '_', name)}"
-    return re.sub(r"[^A-Za-z0-9_.-]", "_", spec)
+    if not is_real(spec):
+        return spec
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", Path(spec.rstrip("/")).name)  # a stored dataset
+
+
+#: Closed-loop keys the rows vary: not settable for all rows at once.
+ROW_KEYS = ("selector", "guidance")
 
 
 def row_config(
-    spec: str, row: Row, episodes: int, seed: int, planner: str, batch: int
+    spec: str,
+    row: Row,
+    episodes: int,
+    seed: int,
+    planner: str,
+    batch: int,
+    base: dict | None = None,
 ) -> StressConfig:
-    """The stress run of one row on one scenario."""
+    """The stress run of one row on one scenario; ``base``: closed-loop settings shared by
+    every row (``SimConfig`` keys other than :data:`ROW_KEYS`)."""
+    base = dict(base or {})
+    fixed = sorted(set(base) & set(ROW_KEYS))
+    if fixed:
+        raise ValueError(f"{fixed} differ between the rows; they cannot be set for all rows")
     return StressConfig(
         scenario=spec,
         episodes=episodes,
         seed=seed,
         planner=planner,
-        sim=SimConfig.from_mapping(row.sim),
+        sim=SimConfig.from_mapping({**base, **row.sim}),
         batch=batch,
     )
 
@@ -146,6 +163,7 @@ def run_rows(
     model: str = "default",
     workers: int = 1,
     batch: int = 4,
+    base: dict | None = None,
     progress: bool = True,
     on_row: Callable[[str, str, int], None] | None = None,
 ) -> dict[str, dict[str, list[dict]]]:
@@ -160,7 +178,7 @@ def run_rows(
     plan = []
     for spec in specs:
         for name in rows_for(spec):
-            config = row_config(spec, ROWS[name], episodes, seed, planner, batch)
+            config = row_config(spec, ROWS[name], episodes, seed, planner, batch, base)
             if config.is_sb3:
                 raise ValueError("paper-tables runs the built-in planners (idm, log, ...)")
             plan.append((scenario_dir(spec), name, config))

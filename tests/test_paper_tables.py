@@ -1,0 +1,126 @@
+"""`counterscene paper-tables`: every row on the same episodes, horizons a log does not
+reach left empty, intervals and paired tests, resumable runs, timings apart."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from counterscene_env.cli import main
+from counterscene_env.report import paper_tables
+from counterscene_env.scene.shards import save_scenes
+from counterscene_env.stress import paper
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def _record(cr: float, dec: float, rollout: float = 10.0, adversary: str | None = "a7"):
+    per = {
+        str(s): {
+            "ADE": 0.1 * s,
+            "FDE": 0.3 * s,
+            "ORR": 0.0,
+            "HBR": float(dec > 3),
+            "CR": cr,
+            "CR_adv": math.nan if adversary is None else cr,
+            "DEC": dec,
+        }
+        for s in range(1, 11)
+    }
+    return {"per_second": per, "rollout_s": rollout, "adversary_id": adversary}
+
+
+def test_horizons_past_the_log_are_empty_and_hbr_reads_the_braking_peak():
+    records = [_record(1.0, 7.0, rollout=4.0), _record(0.0, 4.0, adversary=None)]
+    at_7 = paper_tables.per_episode(records, "ADE", [3, 7])
+    assert at_7[0, 0] == pytest.approx(0.3) and math.isnan(at_7[0, 1])  # log ends at 4 s
+    assert paper_tables.per_episode(records, "HBR3", [3])[:, 0].tolist() == [1.0, 1.0]
+    assert paper_tables.per_episode(records, "HBR6", [3])[:, 0].tolist() == [1.0, 0.0]
+    # No adversary: no collision with one (0), not "nothing to measure".
+    assert paper_tables.per_episode(records, "CR_adv", [3])[:, 0].tolist() == [1.0, 0.0]
+
+
+def test_a_row_with_many_more_collisions_is_outside_the_noise_and_a_copy_is_not():
+    reference = [_record(0.0, 2.0) for _ in range(40)]
+    worse = [_record(1.0 if i < 20 else 0.0, 2.0) for i in range(40)]
+    cells = paper_tables.table(
+        "ablation", {"counterscene": reference, "minimal": worse, "no_jerk": list(reference)}
+    )
+    assert cells["counterscene"]["3s"]["CR"].paired is None
+    assert cells["counterscene"]["3s"]["CR"].estimate.value == 0.0
+    hit = cells["minimal"]["3s"]["CR"]
+    assert hit.estimate.value == 0.5 and hit.estimate.low < 0.5 < hit.estimate.high
+    assert hit.paired.significant and hit.paired.b_only == 20
+    assert not cells["no_jerk"]["3s"]["CR"].paired.significant
+
+
+def test_rows_of_each_table_and_refused_settings():
+    assert paper.rows_for("intersection")[0] == "counterscene"
+    assert set(paper.rows_for("intersection")) == set(paper.ROWS)
+    assert paper.rows_for("scenarionet:/data/logs") == paper.TABLES["main"]
+    assert paper.scenario_dir("scenarionet:/data/nuscenes_mini/") == "scenarionet-nuscenes_mini"
+    with pytest.raises(ValueError, match="selector"):
+        paper.row_config("merge", paper.ROWS["random"], 1, 0, "idm", 1, {"selector": "ttc"})
+    with pytest.raises(ValueError, match="nope"):
+        paper.row_config("merge", paper.ROWS["random"], 1, 0, "idm", 1, {"nope": 1})
+
+
+@pytest.mark.slow
+def test_paper_tables_on_stored_logs_resumes_and_writes_timings_apart(generated, tmp_path, capsys):
+    logs = tmp_path / "logs.npz"
+    save_scenes([generated["merge"], generated["intersection"]], logs)
+    out = tmp_path / "tables"
+    code = main(
+        [
+            "paper-tables",
+            "--episodes",
+            "2",
+            "--scenario",
+            str(logs),
+            "--out",
+            str(out),
+            "--quiet",
+            "--set",
+            "duration=3.2",
+            "num_samples=2",
+            "--json",
+        ]
+    )
+    assert code == 0
+    doc = json.loads(capsys.readouterr().out)
+    real = doc["tables"]["logs.npz"]["real"]
+    assert list(real) == list(paper.TABLES["main"])  # CounterScene first
+    ade = real["counterscene"]["3s"]["ADE"]
+    assert ade["n"] == 2 and np.isfinite(ade["value"]) and ade["low"] <= ade["value"]
+    assert real["counterscene"]["5s"]["ADE"]["n"] == 0  # the 3.2 s rollouts never reach 5 s
+    assert real["counterscene"]["3s"]["CR"]["paired"] is None
+    assert real["unguided"]["3s"]["CR"]["paired"]["n"] == 2
+    assert "seconds" not in json.dumps(doc)  # compute times are in timings.json only
+    assert json.loads((out / "timings.json").read_text())["row_seconds"]["logs.npz"]
+    lines = {r: (out / "logs.npz" / r / "episodes.jsonl").read_text() for r in real}
+    first = (out / "tables.json").read_text()
+    assert (
+        main(
+            [
+                "paper-tables",
+                "--episodes",
+                "2",
+                "--scenario",
+                str(logs),
+                "--out",
+                str(out),
+                "--quiet",
+                "--set",
+                "duration=3.2",
+                "num_samples=2",
+            ]
+        )
+        == 0
+    )
+    again = {r: (out / "logs.npz" / r / "episodes.jsonl").read_text() for r in real}
+    assert again == lines  # nothing ran twice
+    assert json.loads((out / "tables.json").read_text())["tables"] == json.loads(first)["tables"]
+    assert "Real logs at 3 s, 5 s and 7 s" in (out / "tables.md").read_text()
