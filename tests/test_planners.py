@@ -121,3 +121,30 @@ def test_idm_yield_gives_way_to_a_crossing_car_plain_idm_does_not():
     free, eager = lane_scene(lead_gap=None), IDMPlanner(target_speed=15.0, yield_to_traffic=True)
     eager.reset(free, 0)
     assert eager.act(state_of(free))[0] > 0.5  # nothing to yield to
+
+
+def test_idm_reset_searches_lanes_for_itself_only_whatever_the_traffic(monkeypatch):
+    """A lane follower reads the other agents' positions only: building them must not search
+    the map's lanes for each (on real maps, hundreds of lanes per search, N agents per
+    follower), and it still brakes for them."""
+    from highway_env.road.road import RoadNetwork
+
+    calls = []
+    search = RoadNetwork.get_closest_lane_index
+    monkeypatch.setattr(
+        RoadNetwork,
+        "get_closest_lane_index",
+        lambda self, *a, **k: calls.append(1) or search(self, *a, **k),
+    )
+    base = lane_scene(lead_gap=12.0)
+    far = np.stack([np.stack([np.full(40, 500.0 + 10 * i), np.zeros(40)], -1) for i in range(20)])
+    scene = make_scene(
+        np.concatenate([base.positions, far]),
+        speeds=np.concatenate([base.speeds, np.zeros((20, 40))]),
+        current_index=30,
+    )
+    planner = IDMPlanner()
+    planner.reset(scene, 0)
+    assert len(calls) <= 2  # the ego's vehicle and its route's goal, not the 21 others
+    acc, _ = planner.act(state_of(scene))
+    assert acc < -3.0  # the stopped car 12 m ahead is still seen

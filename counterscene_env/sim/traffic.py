@@ -86,12 +86,18 @@ class IDMLaneFollower:
         last = np.flatnonzero(scene.valid[e])[-1]
         goal = net.get_closest_lane_index(scene.positions[e, last], scene.yaws[e, last])
         self.vehicle.plan_route_to(goal[1])
-        self.others = {
-            i: Vehicle(self.road, scene.positions[i, t].copy(), float(scene.yaws[i, t]), 0.0)
-            for i in range(scene.num_agents)
-            if i != e
-        }
+        self.others = {i: self._other(scene, i, t) for i in range(scene.num_agents) if i != e}
         self.road.vehicles = [self.vehicle]
+
+    def _other(self, scene: Scene, i: int, t: int) -> Vehicle:
+        """Agent ``i`` as a highway-env vehicle on this road, without its lane: highway-env
+        would search every lane of the map for it, N times per follower, which on real maps
+        (hundreds of lanes) was most of a real-log episode. Only its position, heading and
+        speed are read (``Road.neighbour_vehicles``), and its lane is set where the priority
+        rule needs it (``_must_yield``)."""
+        other = Vehicle(None, scene.positions[i, t].copy(), float(scene.yaws[i, t]), 0.0)
+        other.road = self.road
+        return other
 
     def act(self, state: WorldState) -> np.ndarray:
         v, e = self.vehicle, self.agent
