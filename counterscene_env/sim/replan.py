@@ -360,7 +360,7 @@ def _apply_plan(
     """Write the chosen sample ``[K, F, 4]`` (window frame) as the plans of the window's
     ``plan_rows`` that the model could plan (``valid [K]``), and its normalised action
     tokens ``[K, Ta, 2]`` as every predicted agent's warm start. ``K`` may be below the
-    window's own agent count (``collate(trim=True)`` cuts trailing padding)."""
+    window's slot count (``collate(trim=True)`` cuts its trailing padding slots)."""
     window_rows = window.rows[: len(valid)]
     seen = (window_rows >= 0) & np.asarray(valid)
     ep.plan_tokens[window_rows[seen]] = tokens[seen]
