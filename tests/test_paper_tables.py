@@ -124,3 +124,25 @@ def test_paper_tables_on_stored_logs_resumes_and_writes_timings_apart(generated,
     assert again == lines  # nothing ran twice
     assert json.loads((out / "tables.json").read_text())["tables"] == json.loads(first)["tables"]
     assert "Real logs at 3 s, 5 s and 7 s" in (out / "tables.md").read_text()
+    # --tables-only runs nothing, even when more episodes are asked for.
+    assert (
+        main(
+            [
+                "paper-tables",
+                "--episodes",
+                "5",
+                "--scenario",
+                str(logs),
+                "--out",
+                str(out),
+                "--quiet",
+                "--set",
+                "duration=3.2",
+                "num_samples=2",
+                "--tables-only",
+            ]
+        )
+        == 0
+    )
+    assert {r: (out / "logs.npz" / r / "episodes.jsonl").read_text() for r in real} == lines
+    assert "the episodes run so far of 5 per row" in (out / "tables.md").read_text()

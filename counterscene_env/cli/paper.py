@@ -59,6 +59,12 @@ def add_paper_tables(sub) -> None:
         help="closed-loop settings for every row (JSON values), e.g. num_samples=16 "
         "duration=7; the rows' own keys (selector, guidance) cannot be set",
     )
+    pp.add_argument(
+        "--tables-only",
+        action="store_true",
+        help="run nothing: write the tables from the episodes already in OUT (a row may hold "
+        "fewer than --episodes; its n says so)",
+    )
     pp.add_argument("--quiet", action="store_true", help="no progress bars")
     add_json_flag(pp, "print tables.json's tables as one JSON object")
     pp.set_defaults(func=_cmd_paper_tables)
@@ -100,7 +106,10 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         base=base,
         progress=not args.quiet,
         on_row=on_row,
+        run=not args.tables_only,
     )
+    if not results:
+        raise ValueError(f"{args.out}: no episodes of these scenarios to tabulate")
     seconds: dict[str, dict[str, float]] = {}
     for where, runs in results.items():  # compute time from the records (resumes included)
         for row, records in runs.items():
@@ -123,6 +132,7 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         "seed": args.seed,
         "model": args.model,
         "settings": base,
+        "tables_only": args.tables_only,
     }
     page = paper_document.write(args.out, built, meta, seconds)
     if args.json:

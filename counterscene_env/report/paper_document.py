@@ -69,7 +69,13 @@ def markdown(built: dict, meta: dict, seconds: dict[str, dict[str, float]]) -> s
         "",
         f"Command: `{meta['command']}`",
         "",
-        f"Planner `{meta['planner']}`, {meta['episodes']} episodes per row from seed "
+        f"Planner `{meta['planner']}`, "
+        + (
+            f"the episodes run so far of {meta['episodes']} per row (n below)"
+            if meta.get("tables_only")
+            else f"{meta['episodes']} episodes per row"
+        )
+        + " from seed "
         f"{meta['seed']} (every row on the same scenes and noise), model `{meta['model']}`"
         + (f", closed-loop settings {meta['settings']}." if meta.get("settings") else "."),
         "Values: `value [95 % interval]`; rates and ORR in %, ADE and FDE in m. A single "

@@ -166,12 +166,15 @@ def run_rows(
     base: dict | None = None,
     progress: bool = True,
     on_row: Callable[[str, str, int], None] | None = None,
+    run: bool = True,
 ) -> dict[str, dict[str, list[dict]]]:
     """Run (or finish) every row each scenario needs; ``{scenario dir: {row: records}}``.
 
     ``on_row(scenario dir, row, episodes already done)`` is called before each row runs.
     Every config is checked before the first episode runs, so a bad spec or planner fails
-    at once and leaves nothing behind.
+    at once and leaves nothing behind. ``run=False``: run nothing, return the episodes
+    already in ``out`` (a row may then hold fewer than ``episodes``; rows with none are
+    left out).
     """
     from counterscene_env.world_model.checkpoint import load_model
 
@@ -182,7 +185,7 @@ def run_rows(
             if config.is_sb3:
                 raise ValueError("paper-tables runs the built-in planners (idm, log, ...)")
             plan.append((scenario_dir(spec), name, config))
-    world_model = load_model(model) if workers == 1 else None
+    world_model = load_model(model) if workers == 1 and run else None
     results: dict[str, dict[str, list[dict]]] = {}
     for where, name, config in plan:
         directory = Path(out) / where / name
@@ -193,6 +196,10 @@ def run_rows(
             summarize=lambda r, c=config: summarize(r[: c.episodes], c),
         )
         done = len(log.records[: config.episodes])
+        if not run:
+            if done:
+                results.setdefault(where, {})[name] = log.records[: config.episodes]
+            continue
         if on_row is not None:
             on_row(where, name, done)
         if done < config.episodes:
