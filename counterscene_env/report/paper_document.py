@@ -153,11 +153,14 @@ def _paired_lines(rows: list[str], cells: dict, column: str, labels: dict) -> st
             scale, suffix = (100, " points") if unit in ("rate", "fraction") else (1, " m")
             verdict = "outside the noise" if test.significant else "inside the noise"
             p = "" if test.p_value is None else f", p = {test.p_value:.2g}"
-            parts.append(
-                f"{METRICS[key][0]} {scale * test.difference:+.3g}{suffix} "
-                f"[{scale * test.low:+.3g}, {scale * test.high:+.3g}]{p}, {verdict}"
-            )
+            d, lo, hi = (_signed(scale * x) for x in (test.difference, test.low, test.high))
+            parts.append(f"{METRICS[key][0]} {d}{suffix} [{lo}, {hi}]{p}, {verdict}")
         out.append(
             f"- {labels[row]} (n = {cells[row][column][PAIRED[0]].paired.n}): " + "; ".join(parts)
         )
     return "\n".join(out)
+
+
+def _signed(x: float) -> str:
+    """A difference with its sign, 3 significant digits; rounding noise shows as 0."""
+    return "0" if abs(x) < 1e-9 else f"{x:+.3g}"
