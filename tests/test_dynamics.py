@@ -202,3 +202,26 @@ def test_course_is_the_heading_when_stopped_or_unknown():
     valid = torch.tensor([True, False, True, True, True])
     course = course_angles(moving, heading, torch.full((5,), 10.0, dtype=D), valid, dt=DT)
     torch.testing.assert_close(course, torch.tensor([0.1, 0.2, 0.3, 0.0, 0.0], dtype=D))
+
+
+def test_closed_form_rollout_is_the_step_by_step_recursion():
+    """The rollout is computed in closed form (cumulative sums; the speed floor as Lindley's
+    recursion); it is the module docstring's recursion, step by step, with brakings to a
+    stop, restarts, negative start speeds and both bounds active."""
+    g = torch.Generator().manual_seed(0)
+    state = torch.randn(64, 4, generator=g) * torch.tensor([20.0, 20.0, 3.0, 6.0])
+    actions = torch.randn(64, 52, 2, generator=g) * torch.tensor([7.0, 0.8])
+    x, y, yaw, v = state.unbind(-1)
+    want = []
+    for k in range(actions.shape[1]):
+        a = actions[:, k, 0].clamp(ACC_MIN, ACC_MAX)
+        limit = max_yaw_rate(v)  # the default constants, as unicycle_rollout
+        w = torch.maximum(torch.minimum(actions[:, k, 1], limit), -limit)
+        v = (v + a * 0.1).clamp(min=0.0)
+        yaw = yaw + w * 0.1
+        x, y = x + 0.1 * v * torch.cos(yaw), y + 0.1 * v * torch.sin(yaw)
+        want.append(torch.stack([x, y, yaw, v], -1))
+    want = torch.stack(want, 1)
+    got = unicycle_rollout(state, actions)
+    assert (want[..., 3] == 0).any() and (state[:, 3] < 0).any()  # floors and restarts happen
+    torch.testing.assert_close(got, want, rtol=0, atol=5e-4)
