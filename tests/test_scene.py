@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 import pytest
 import shapely
@@ -108,6 +110,23 @@ def test_road_map_from_centerlines_builds_a_connected_network():
     assert road.network.next_lane((start_a, end_a, 0), position=np.array([49.0, 0.0]))[0] == start_b
     assert shapely.intersects_xy(road.drivable_area, 25.0, 1.5)
     assert not shapely.intersects_xy(road.drivable_area, 25.0, 2.5)
+
+
+def test_a_real_map_pickles_to_the_same_lanes():
+    """Real maps' spline lanes hold closures that do not pickle; a map still travels to a
+    stress worker and comes back lane for lane the same, its area still prepared."""
+    curve = np.stack([np.linspace(0, 60, 13), 0.01 * np.linspace(0, 60, 13) ** 2], axis=1)
+    road = RoadMap.from_centerlines([curve, curve[-3:] + np.array([0.0, 4.0])], [3.5, 3.0])
+    back = pickle.loads(pickle.dumps(road))
+    points = np.array([[10.0, 2.0], [45.0, 18.0], [58.0, 40.0]])
+    for a, b in zip(road.network.lanes_list(), back.network.lanes_list(), strict=True):
+        assert type(a) is type(b) and a.length == b.length
+        for p in points:
+            assert np.array_equal(a.local_coordinates(p), b.local_coordinates(p))
+    for p in points:
+        assert back.network.get_closest_lane_index(p) == road.network.get_closest_lane_index(p)
+    assert np.array_equal(back.off_road(points), road.off_road(points))
+    assert shapely.is_prepared(back.drivable_area)
 
 
 def test_network_json_round_trip_and_refuses_foreign_classes(generated):

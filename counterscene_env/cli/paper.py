@@ -50,6 +50,14 @@ def add_paper_tables(sub) -> None:
     pp.add_argument("--seed", type=int, default=300000, help="seed of episode 0 (default 300000)")
     pp.add_argument("--workers", type=int, default=1, help="processes per row (default 1)")
     pp.add_argument("--batch", type=int, default=4, help="episodes per batch (default 4)")
+    pp.add_argument(
+        "--egos",
+        type=int,
+        default=1,
+        help="ego choices per real scene where a folder has fewer scenes than --episodes: "
+        "each pass over its scenes seats the next moving vehicle as the ego (default 1: "
+        "the recorded ego only)",
+    )
     pp.add_argument("--model", default="default", help="model directory (default: shipped)")
     pp.add_argument(
         "--set",
@@ -76,10 +84,9 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
     from counterscene_env.scene.sources import check_spec
     from counterscene_env.stress import paper
 
-    if args.episodes < 1:
-        raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
-    if args.workers < 1:
-        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    for flag in ("episodes", "workers", "egos"):
+        if getattr(args, flag) < 1:
+            raise ValueError(f"--{flag} must be >= 1, got {getattr(args, flag)}")
     base = parse_overrides(args.set)
     roads = ["intersection", "merge"] if args.scenario is None else args.scenario
     roads = [] if roads == ["none"] else roads
@@ -104,6 +111,7 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         args.workers,
         args.batch,
         base=base,
+        egos=args.egos,
         progress=not args.quiet,
         on_row=on_row,
         run=not args.tables_only,
@@ -130,6 +138,7 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         "planner": args.planner,
         "episodes": args.episodes,
         "seed": args.seed,
+        "egos": args.egos,
         "model": args.model,
         "settings": base,
         "tables_only": args.tables_only,

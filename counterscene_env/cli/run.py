@@ -73,6 +73,13 @@ def add_stress(sub) -> None:
         help="episodes advanced together, one world-model call per replan (default 4)",
     )
     st.add_argument(
+        "--egos",
+        type=int,
+        default=1,
+        help="stored scenes cycled for more episodes than they hold: each pass seats the next "
+        "moving vehicle as the ego (default 1: the recorded ego only)",
+    )
+    st.add_argument(
         "--workers",
         type=int,
         help="processes to run batches in, one torch thread each (default 1; --backend ray: "
@@ -174,6 +181,7 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         planner=args.planner,
         sim=_sim_config(args),
         batch=args.batch,
+        egos=args.egos,
     )
     env_config = _policy_env_config(args, config.is_sb3)
     model = None if config.is_sb3 else load_model(args.model)  # a bad --model fails here

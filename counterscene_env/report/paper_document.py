@@ -77,6 +77,11 @@ def markdown(built: dict, meta: dict, seconds: dict[str, dict[str, float]]) -> s
         )
         + " from seed "
         f"{meta['seed']} (every row on the same scenes and noise), model `{meta['model']}`"
+        + (
+            f", up to {meta['egos']} ego choices per real scene (the recorded ego first)"
+            if meta.get("egos", 1) > 1
+            else ""
+        )
         + (f", closed-loop settings {meta['settings']}." if meta.get("settings") else "."),
         "Values: `value [95 % interval]`; rates and ORR in %, ADE and FDE in m. A single "
         "horizon's rate has a Wilson interval, means and averages over several seconds a "

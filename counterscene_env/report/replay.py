@@ -125,7 +125,8 @@ def batch_scenes(run: Run, episodes: range) -> list[Scene]:
         # A safe seed regenerates its own scene; no need to walk the seeds before it.
         scenes = [generate(spec, int(r["scene_seed"])) for r in records]
     else:
-        source = scenes_for(spec, episodes.stop, int(run.identity["seed"]))
+        egos = int(run.identity.get("egos", 1))
+        source = scenes_for(spec, episodes.stop, int(run.identity["seed"]), egos)
         scenes = list(itertools.islice(source, episodes.start, None))
     for scene, r in zip(scenes, records, strict=True):
         if scene.scenario_id != r["scenario_id"]:

@@ -4,12 +4,10 @@ One job: turn a CommonRoad file, parsed by ``commonroad-io``'s ``CommonRoadFileR
 optional extra: ``pip install "counterscene-env[commonroad]"``), into the scene contract.
 
 Ego: the planning problem's ego is a planning task, not a logged car (in the NGSIM files its
-initial state matches no obstacle), so it is ignored. An ego choice is a dynamic vehicle whose
-mean speed over its valid steps is above :data:`MIN_EGO_SPEED`, valid from
-:data:`MIN_HISTORY_STEPS` steps before "now" to one step after it, whose box overlaps no other
-agent's at any step where both are valid (15 of the 84 usable NGSIM recordings hold overlapping
-logged boxes; a factual log must not start from an ego collision). Best first: most valid
-steps, then by id.
+initial state matches no obstacle), so it is ignored. An ego choice follows the rule of
+``scene/egos.py`` (a moving vehicle, present around "now", whose box never overlaps another's:
+15 of the 84 usable NGSIM recordings hold overlapping logged boxes, and a factual log must not
+start from an ego collision). Best first: most valid steps, then by id.
 
 Short logs: "now" moves earlier where the log does not hold 1 s after ``current_index``
 (``core.default_current_index``: 1 s of future if 1 s of history remains, else one future
@@ -41,18 +39,17 @@ from typing import Any
 
 import numpy as np
 
-from counterscene_env.geometry import boxes_overlap
 from counterscene_env.scene.commonroad_map import CommonRoadError, road_from_lanelets
 from counterscene_env.scene.commonroad_tracks import Tracks, file_fault, read_tracks
 from counterscene_env.scene.core import (
     AGENT_TYPES,
     DEFAULT_DT,
-    MIN_HISTORY_STEPS,
     Scene,
     SceneError,
     SceneTooShort,
     default_current_index,
 )
+from counterscene_env.scene.egos import EGO_RULE, ego_problem
 from counterscene_env.scene.road import RoadMap
 
 __all__ = [
@@ -63,10 +60,8 @@ __all__ = [
     "load_commonroad",
 ]
 
-MIN_EGO_SPEED = 1.0  # [m/s] mean speed above which a vehicle is "moving" (an ego choice)
 HASH_RESOLUTION = 0.01  # [m] positions are rounded to this before hashing the traffic
 INSTALL_HINT = 'pip install "counterscene-env[commonroad]"'
-_EGO_RULE = f"a vehicle above {MIN_EGO_SPEED:g} m/s mean speed, present around now, no overlap"
 
 
 class CommonRoadTooShort(CommonRoadError, SceneTooShort):
@@ -241,22 +236,21 @@ def _effective_index(num_steps: int, current_index: int, source: str) -> int:
 
 # ---------------------------------------------------------------------- egos
 def _ego_problem(tracks: Tracks, row: int, ci: int) -> str | None:
-    """Why ``row`` is no ego choice at "now" step ``ci``, or None if it is one."""
-    ok, start = tracks.valid[row], max(0, ci - MIN_HISTORY_STEPS)
-    if tracks.types[row] != "vehicle":
-        return f"its type is {tracks.types[row]!r}, not 'vehicle'"
-    if not ok[start : ci + 2].all():
-        return f"it is not present at every step from {start} to {ci + 1}"
-    if np.abs(tracks.speeds[row][ok]).mean() <= MIN_EGO_SPEED:
-        return f"its mean speed is not above {MIN_EGO_SPEED:g} m/s"
-    pos, yaw, ext = tracks.positions, tracks.yaws, tracks.extents
-    hit = boxes_overlap(pos[row][None], yaw[row][None], ext[row], pos, yaw, ext[:, None])
-    hit &= tracks.valid & ok[None]
-    hit[row] = False
-    if hit.any():
-        other, t = np.argwhere(hit)[0]
+    """Why ``row`` is no ego choice at "now" step ``ci`` (``scene.egos``' rule), or None."""
+    problem = ego_problem(
+        tracks.types,
+        tracks.valid,
+        tracks.speeds,
+        tracks.positions,
+        tracks.yaws,
+        tracks.extents,
+        row,
+        ci,
+    )
+    if isinstance(problem, tuple):
+        other, t = problem
         return f"its box overlaps obstacle {tracks.ids[other]}'s at step {t}"
-    return None
+    return problem
 
 
 def _ego_rows(tracks: Tracks, ci: int) -> list[int]:
@@ -294,7 +288,7 @@ def _scenes(
         if (problem := _ego_problem(tracks, chosen[0], ci)) is not None:
             raise CommonRoadError(f"{source}: obstacle {ego} cannot be the ego: {problem}")
     elif not rows:
-        raise CommonRoadError(f"{source}: no vehicle qualifies as ego ({_EGO_RULE})")
+        raise CommonRoadError(f"{source}: no vehicle qualifies as ego ({EGO_RULE})")
     else:
         chosen = rows if all_egos else rows[:1]
     with file_fault(source, "lanelet"):  # e.g. a lanelet of zero width

@@ -91,6 +91,18 @@ class RoadMap:
         if self.extent is not None:
             shapely.prepare(self.extent)
 
+    def __getstate__(self) -> dict:
+        # highway-env's spline lanes (PolyLane*) hold closures, which do not pickle: a map
+        # crosses to another process (``stress --workers``) as its serialised network, rebuilt
+        # lane for lane from the same source points (network_to_json).
+        return {**self.__dict__, "network": network_to_json(self.network)}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update({**state, "network": network_from_json(state["network"])})
+        shapely.prepare(self.drivable_area)
+        if self.extent is not None:
+            shapely.prepare(self.extent)
+
     def off_road(self, points: np.ndarray) -> np.ndarray:
         """Whether points are off the road: outside the drivable area, inside the map's extent.
 

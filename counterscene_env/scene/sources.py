@@ -10,7 +10,9 @@ specs in turn.
 
 - :class:`SceneSource` draws one scene per env reset from the generator the env passes, so the
   same env seed gives the same scenes.
-- :func:`scenes_for` gives the scene of each episode of a stress run in order.
+- :func:`scenes_for` gives the scene of each episode of a stress run in order; a stored
+  source with fewer scenes than episodes can seat another vehicle as the ego on each pass
+  (``egos``, the rule of ``scene/egos.py``).
 
 A stored scene too short for an episode (no step after its "now", or its ego absent then:
 ``core.playable``) is skipped and counted in :data:`SKIPPED`; an episode on a short log ends
@@ -26,6 +28,7 @@ import numpy as np
 
 from counterscene_env.config import COMMONROAD_PREFIX, SCENARIONET_PREFIX, Scenario
 from counterscene_env.scene.core import Scene, playable
+from counterscene_env.scene.egos import ego_choices, with_ego
 
 #: Generated scenes take their seed from [0, SEED_RANGE).
 SEED_RANGE = 2**31 - 1
@@ -137,19 +140,23 @@ class SceneSource:
         return self._cache[spec]
 
 
-def scenes_for(spec: str, episodes: int, seed: int) -> Iterator[Scene]:
+def scenes_for(spec: str, episodes: int, seed: int, egos: int = 1) -> Iterator[Scene]:
     """The scene of each of ``episodes`` episodes of a stress run.
 
     A generated road gives the first ``episodes`` safe seeds from ``seed``, exactly the scenes
     ``counterscene generate --scenario S --scenes N --seed S0`` writes; a stored spec gives its
-    scenes in order. Sources with fewer scenes than episodes are cycled. In a mixture
-    ``a,b,...`` of n specs, episode i is the ``i // n``-th scene of part ``i % n``.
+    scenes in order. Sources with fewer scenes than episodes are cycled: pass k over the
+    scenes seats ego choice ``k mod min(egos, choices)`` of each (``scene.egos.ego_choices``:
+    choice 0 is the recorded ego), so ``egos = 1`` replays every scene with its own ego. In a
+    mixture ``a,b,...`` of n specs, episode i is the ``i // n``-th scene of part ``i % n``.
     """
+    if egos < 1:
+        raise ValueError(f"egos must be >= 1, got {egos}")
     parts = mixed_parts(spec)
     if len(parts) > 1:
         n = len(parts)
         # Part j serves episodes j, j + n, ...: ceil((episodes - j) / n) of them.
-        sources = [scenes_for(p, -(-(episodes - j) // n), seed) for j, p in enumerate(parts)]
+        sources = [scenes_for(p, -(-(episodes - j) // n), seed, egos) for j, p in enumerate(parts)]
         for i in range(episodes):
             yield next(sources[i % n])
         return
@@ -162,6 +169,12 @@ def scenes_for(spec: str, episodes: int, seed: int) -> Iterator[Scene]:
             next_seed = scene.metadata["seed"] + 1
             yield scene
         return
+    yield from _stored_for(spec, episodes, egos)
+
+
+def _stored_for(spec: str, episodes: int, egos: int) -> Iterator[Scene]:
+    """:func:`scenes_for` of a stored spec: its scenes in order, then again with the next
+    ego choice on each pass."""
     cache: list[Scene] = []
     for scene in stored_scenes(spec):
         if len(cache) == episodes:
@@ -170,5 +183,11 @@ def scenes_for(spec: str, episodes: int, seed: int) -> Iterator[Scene]:
         yield scene
     if not cache:
         raise FileNotFoundError(f"{spec_path(spec)}: no scenes")
+    choices: dict[int, list[int]] = {}
     for i in range(len(cache), episodes):
-        yield cache[i % len(cache)]
+        j, k = i % len(cache), i // len(cache)
+        scene = cache[j]
+        if egos > 1:
+            rows = choices.setdefault(j, ego_choices(scene)[:egos])
+            scene = with_ego(scene, rows[k % len(rows)])
+        yield scene

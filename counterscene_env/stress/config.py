@@ -29,6 +29,8 @@ class StressConfig:
         sim: closed-loop settings (selector, guidance, samples, ...).
         batch: episodes advanced together (one world-model call per replan; an sb3
             planner's in one vector env).
+        egos: ego choices per stored scene when the run cycles a source with fewer scenes
+            than episodes (``scene.sources.scenes_for``); 1 keeps every recorded ego.
     """
 
     scenario: str
@@ -37,12 +39,15 @@ class StressConfig:
     planner: str = "idm"
     sim: SimConfig = dataclasses.field(default_factory=SimConfig)
     batch: int = 4
+    egos: int = 1
 
     def __post_init__(self) -> None:
         if self.episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {self.episodes}")
         if self.batch < 1:
             raise ValueError(f"batch must be >= 1, got {self.batch}")
+        if self.egos < 1:
+            raise ValueError(f"egos must be >= 1, got {self.egos}")
         check_spec(self.scenario)
         if self.is_sb3:
             path = self.policy_path
@@ -73,6 +78,8 @@ def run_identity(config: StressConfig, model: str, env_config: dict | None = Non
     policy's sidecar (``--like``, ``--env-config``), which change what the policy sees."""
     out = config.to_dict()
     out.pop("episodes")
+    if out["egos"] == 1:
+        out.pop("egos")  # the recorded egos: as runs from before the key, which still resume
     out["model"] = model
     if env_config:
         out["env_config"] = env_config

@@ -34,7 +34,8 @@ def _remaining_scenes(config: StressConfig, done: Sequence[dict]) -> Iterator[Sc
     k = len(done)
     if config.scenario in Scenario.values() and k:
         return scenes_for(config.scenario, config.episodes - k, done[-1]["scene_seed"] + 1)
-    return itertools.islice(scenes_for(config.scenario, config.episodes, config.seed), k, None)
+    scenes = scenes_for(config.scenario, config.episodes, config.seed, config.egos)
+    return itertools.islice(scenes, k, None)
 
 
 def first_to_run(config: StressConfig, done: Sequence[dict]) -> int:

@@ -137,9 +137,11 @@ def row_config(
     planner: str,
     batch: int,
     base: dict | None = None,
+    egos: int = 1,
 ) -> StressConfig:
     """The stress run of one row on one scenario; ``base``: closed-loop settings shared by
-    every row (``SimConfig`` keys other than :data:`ROW_KEYS`)."""
+    every row (``SimConfig`` keys other than :data:`ROW_KEYS`); ``egos``: ego choices per
+    real scene (``StressConfig.egos``; generated roads draw a new scene every episode)."""
     base = dict(base or {})
     fixed = sorted(set(base) & set(ROW_KEYS))
     if fixed:
@@ -151,6 +153,7 @@ def row_config(
         planner=planner,
         sim=SimConfig.from_mapping({**base, **row.sim}),
         batch=batch,
+        egos=egos if is_real(spec) else 1,
     )
 
 
@@ -164,6 +167,7 @@ def run_rows(
     workers: int = 1,
     batch: int = 4,
     base: dict | None = None,
+    egos: int = 1,
     progress: bool = True,
     on_row: Callable[[str, str, int], None] | None = None,
     run: bool = True,
@@ -181,7 +185,7 @@ def run_rows(
     plan = []
     for spec in specs:
         for name in rows_for(spec):
-            config = row_config(spec, ROWS[name], episodes, seed, planner, batch, base)
+            config = row_config(spec, ROWS[name], episodes, seed, planner, batch, base, egos)
             if config.is_sb3:
                 raise ValueError("paper-tables runs the built-in planners (idm, log, ...)")
             plan.append((scenario_dir(spec), name, config))

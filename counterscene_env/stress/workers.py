@@ -116,7 +116,9 @@ def _collect(todo, tasks, results, procs, tally: Progress) -> None:
             nxt = next(todo, None)
             if nxt is None:
                 return
-            tasks.put(nxt)
+            # Pickled here, not in the queue's feeder thread: a batch that cannot travel
+            # fails the run at once instead of leaving it waiting for a result forever.
+            tasks.put(pickle.dumps(nxt))
             sent.append(nxt[0])
 
     feed()
@@ -183,7 +185,7 @@ def _serve(spec: tuple, tasks, results) -> None:
         return
     try:
         while (task := tasks.get()) is not None:
-            first, scenes = task
+            first, scenes = pickle.loads(task)  # the parent's own batch (_collect)
             try:
                 results.put((first, runner(first, scenes), None))
             except Exception as exc:
