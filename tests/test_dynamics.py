@@ -204,15 +204,10 @@ def test_course_is_the_heading_when_stopped_or_unknown():
     torch.testing.assert_close(course, torch.tensor([0.1, 0.2, 0.3, 0.0, 0.0], dtype=D))
 
 
-def test_closed_form_rollout_is_the_step_by_step_recursion():
-    """The rollout is computed in closed form (cumulative sums; the speed floor as Lindley's
-    recursion); it is the module docstring's recursion, step by step, with brakings to a
-    stop, restarts, negative start speeds and both bounds active."""
-    g = torch.Generator().manual_seed(0)
-    state = torch.randn(64, 4, generator=g) * torch.tensor([20.0, 20.0, 3.0, 6.0])
-    actions = torch.randn(64, 52, 2, generator=g) * torch.tensor([7.0, 0.8])
+def _stepwise_rollout(state: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    """The module docstring's recursion, one step at a time (the reference)."""
     x, y, yaw, v = state.unbind(-1)
-    want = []
+    out = []
     for k in range(actions.shape[1]):
         a = actions[:, k, 0].clamp(ACC_MIN, ACC_MAX)
         limit = max_yaw_rate(v)  # the default constants, as unicycle_rollout
@@ -220,8 +215,27 @@ def test_closed_form_rollout_is_the_step_by_step_recursion():
         v = (v + a * 0.1).clamp(min=0.0)
         yaw = yaw + w * 0.1
         x, y = x + 0.1 * v * torch.cos(yaw), y + 0.1 * v * torch.sin(yaw)
-        want.append(torch.stack([x, y, yaw, v], -1))
-    want = torch.stack(want, 1)
+        out.append(torch.stack([x, y, yaw, v], -1))
+    return torch.stack(out, 1)
+
+
+def test_closed_form_rollout_is_the_step_by_step_recursion():
+    """The rollout is computed in closed form (cumulative sums; the speed floor as Lindley's
+    recursion); it is the module docstring's recursion, step by step, with brakings to a
+    stop, restarts, negative start speeds and both bounds active; and so are its gradients,
+    which every guidance step follows."""
+    g = torch.Generator().manual_seed(0)
+    state = torch.randn(64, 4, generator=g) * torch.tensor([20.0, 20.0, 3.0, 6.0])
+    actions = torch.randn(64, 52, 2, generator=g) * torch.tensor([7.0, 0.8])
+    want = _stepwise_rollout(state, actions)
     got = unicycle_rollout(state, actions)
     assert (want[..., 3] == 0).any() and (state[:, 3] < 0).any()  # floors and restarts happen
-    torch.testing.assert_close(got, want, rtol=0, atol=5e-4)
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-4)  # m, rad, m/s: float32 sums
+    weights = torch.randn(want.shape, generator=g)
+    grads = []
+    for rollout in (_stepwise_rollout, unicycle_rollout):
+        a = actions.clone().requires_grad_(True)
+        (rollout(state, a) * weights).sum().backward()
+        grads.append(a.grad)
+    assert grads[0].abs().max() > 1.0  # the loss does depend on the actions
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-3, atol=1e-3)

@@ -66,6 +66,21 @@ def test_rows_of_each_table_and_refused_settings():
         paper.row_config("merge", paper.ROWS["random"], 1, 0, "idm", 1, {"selector": "ttc"})
     with pytest.raises(ValueError, match="nope"):
         paper.row_config("merge", paper.ROWS["random"], 1, 0, "idm", 1, {"nope": 1})
+    # A mixture of generated roads is generated: the full tables, no ego choices.
+    assert paper.rows_for("intersection,merge") == paper.rows_for("intersection")
+    assert (
+        paper.row_config("intersection,merge", paper.ROWS["random"], 1, 0, "idm", 1, egos=3).egos
+        == 1
+    )
+
+
+def test_two_log_folders_of_one_name_are_refused_before_anything_runs(tmp_path):
+    for d in ("a/logs", "b/logs"):
+        (tmp_path / d).mkdir(parents=True)
+    specs = [f"scenarionet:{tmp_path / d}" for d in ("a/logs", "b/logs")]
+    with pytest.raises(ValueError, match="scenarionet-logs"):
+        paper.run_rows(tmp_path / "out", specs, 1, 0)
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.slow

@@ -25,6 +25,8 @@ from counterscene_env.cli import data, model, paper, report, run
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
+    # The command as given (records name it: paper-tables' tables, a run's command.txt).
+    args.argv = list(sys.argv[1:] if argv is None else argv)
     if not hasattr(args, "func"):
         parser.print_help()
         return 2

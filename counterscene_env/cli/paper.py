@@ -74,7 +74,9 @@ def add_paper_tables(sub) -> None:
         "fewer than --episodes; its n says so)",
     )
     pp.add_argument("--quiet", action="store_true", help="no progress bars")
-    add_json_flag(pp, "print tables.json's tables as one JSON object")
+    add_json_flag(
+        pp, "print tables.json (every figure, interval and paired test) as one JSON object"
+    )
     pp.set_defaults(func=_cmd_paper_tables)
 
 
@@ -134,7 +136,7 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         {r.name: r.paper for r in paper.ROWS.values()},
     )
     meta = {
-        "command": "counterscene " + shlex.join(sys.argv[1:]),
+        "command": "counterscene " + shlex.join(args.argv),
         "planner": args.planner,
         "episodes": args.episodes,
         "seed": args.seed,

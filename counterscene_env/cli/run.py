@@ -70,7 +70,7 @@ def add_stress(sub) -> None:
         "--batch",
         type=int,
         default=4,
-        help="episodes advanced together, one world-model call per replan (default 4)",
+        help="episodes advanced together, their replans in batched world-model calls (default 4)",
     )
     st.add_argument(
         "--egos",

@@ -34,7 +34,7 @@ def stress_argv(run: Run) -> list[str]:
     episodes = run.planned_episodes or len(run.records)
     argv = ["counterscene", "stress", "--scenario", str(ident["scenario"])]
     argv += ["--episodes", str(episodes)]
-    for key in ("seed", "planner", "batch", "model"):
+    for key in ("seed", "planner", "batch", "egos", "model"):
         if key in ident:
             argv += [f"--{key}", str(ident[key])]
     sim = ident.get("sim", {})

@@ -1,7 +1,8 @@
 """``counterscene paper-tables`` output: ``tables.md`` (the page ``docs/reproducing_the_paper.md``
 is made from) and ``tables.json`` (every figure with its interval and paired test), written
-from the runs' records by ``report.paper_tables``. Compute times go to ``timings.json``,
-apart from the results, so two runs of the same episodes give identical tables.
+from the runs' records by ``report.paper_tables``. Compute times go to ``timings.json`` (and
+to ``tables.md``'s table headers), not to ``tables.json``, so two runs of the same episodes
+give the same ``tables.json`` results.
 """
 
 from __future__ import annotations
@@ -56,7 +57,9 @@ def write(out: str | Path, built: dict, meta: dict, seconds: dict[str, dict[str,
         "paper": {t: {"source": PAPER_SOURCE[t], "rows": PAPER[t]} for t in PAPER},
     }
     (out / "tables.json").write_text(json.dumps(json_safe(doc), indent=1) + "\n")
-    (out / "timings.json").write_text(json.dumps(json_safe({"row_seconds": seconds}), indent=1))
+    (out / "timings.json").write_text(
+        json.dumps(json_safe({"row_seconds": seconds}), indent=1) + "\n"
+    )
     page = out / "tables.md"
     page.write_text(markdown(built, meta, seconds))
     return page

@@ -16,7 +16,7 @@ adversary counts as no such collision) and **CR ego-any** (the paper's appendix 
 ``docs/metrics.md``: the ego collides with anyone); two HBRs on the ego's signed longitudinal
 acceleration: **HBR -3** (the paper's -3 m/s^2) and **HBR -6** (an emergency stop: about
 0.6 g, beyond the -3 to -5 m/s^2 of firm comfort braking that a careful driver uses at a
-junction, docs/paper_tables.md). Rates are shares of episodes.
+junction, docs/reproducing_the_paper.md). Rates are shares of episodes.
 
 Intervals: a single horizon's rate gets a Wilson interval, every mean and every group
 average a bootstrap interval over episodes (``report.stats``). Each row is paired with the
@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from counterscene_env.metrics import HARD_BRAKE_THRESHOLD
 from counterscene_env.report import stats
 from counterscene_env.report.stats import Estimate, Paired
 
@@ -50,7 +51,7 @@ METRICS = {
     "CR": ("CR ego-any", "rate", True),
 }
 #: Braking thresholds of the two HBR columns [m/s^2].
-HBR_THRESHOLDS = {"HBR3": 3.0, "HBR6": 6.0}
+HBR_THRESHOLDS = {"HBR3": -HARD_BRAKE_THRESHOLD, "HBR6": 6.0}
 
 #: Each table's columns: name -> the horizon seconds averaged in it.
 COLUMNS = {
@@ -70,7 +71,7 @@ PAIRED = ("CR_adv", "CR", "ADE")
 
 # The paper's figures: {table: {paper row: {column: (ADE, FDE, ORR, HBR, CR)}}}, ORR, HBR,
 # CR as fractions. Its HBR is a share of agent-steps and its CR the ego-adversary one.
-_P = {
+PAPER = {
     "main": {
         "CounterScene": {
             "1-4s": (0.288, 0.703, 0.005, 0.016, 0.033),
@@ -127,7 +128,6 @@ _P = {
         },
     },
 }
-PAPER = _P
 PAPER_SOURCE = {
     "main": "nuScenes, the paper's main table",
     "selection": "nuScenes, the paper's selection table",

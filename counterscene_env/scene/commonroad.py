@@ -49,7 +49,7 @@ from counterscene_env.scene.core import (
     SceneTooShort,
     default_current_index,
 )
-from counterscene_env.scene.egos import EGO_RULE, ego_problem
+from counterscene_env.scene.egos import EGO_RULE, best_first, ego_problem
 from counterscene_env.scene.road import RoadMap
 
 __all__ = [
@@ -256,7 +256,7 @@ def _ego_problem(tracks: Tracks, row: int, ci: int) -> str | None:
 def _ego_rows(tracks: Tracks, ci: int) -> list[int]:
     """Rows of the ego choices: most valid steps first, then by id (the row order)."""
     rows = [r for r in range(len(tracks.ids)) if _ego_problem(tracks, r, ci) is None]
-    return sorted(rows, key=lambda r: (-int(tracks.valid[r].sum()), r))
+    return best_first(tracks.valid, rows)
 
 
 # ---------------------------------------------------------------------- scenes

@@ -23,7 +23,7 @@ import numpy as np
 from counterscene_env.geometry import boxes_overlap
 from counterscene_env.scene.core import MIN_HISTORY_STEPS, Scene
 
-__all__ = ["EGO_RULE", "MIN_EGO_SPEED", "ego_choices", "ego_problem", "with_ego"]
+__all__ = ["EGO_RULE", "MIN_EGO_SPEED", "best_first", "ego_choices", "ego_problem", "with_ego"]
 
 MIN_EGO_SPEED = 1.0  # [m/s] mean speed above which a vehicle is "moving" (an ego choice)
 EGO_RULE = f"a vehicle above {MIN_EGO_SPEED:g} m/s mean speed, present around now, no overlap"
@@ -68,6 +68,11 @@ def ego_problem(
     return None
 
 
+def best_first(valid: np.ndarray, rows: Sequence[int]) -> list[int]:
+    """``rows`` ordered as ego choices: most valid steps first (``valid [N, T]``), then by row."""
+    return sorted(rows, key=lambda r: (-int(valid[r].sum()), r))
+
+
 def ego_choices(scene: Scene) -> list[int]:
     """Rows that can be the ego at ``scene.current_index``: the scene's own ego first (even if
     the rule would refuse it: it is the recorded one), then every vehicle the rule accepts,
@@ -79,8 +84,7 @@ def ego_choices(scene: Scene) -> list[int]:
         for r in range(scene.num_agents)
         if r != scene.ego_index and ego_problem(*arrays, scene.extents, r, now) is None
     ]
-    others.sort(key=lambda r: (-int(scene.valid[r].sum()), r))
-    return [scene.ego_index, *others]
+    return [scene.ego_index, *best_first(scene.valid, others)]
 
 
 def with_ego(scene: Scene, row: int) -> Scene:

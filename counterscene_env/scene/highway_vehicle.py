@@ -4,8 +4,9 @@ highway-env's IDM/MOBIL vehicle with two changes, neither of which alters what i
 
 - its speed never goes below 0 (the stock class lets a car that brakes to a stop roll
   backwards, at up to -40 m/s); this one is a behaviour fix and is why the class exists;
-- two of its per-frame searches are made cheaper with the same results. They were over half
-  of recording a scene (docs/performance.md, "Recording a scene"):
+- two of its per-frame searches are made cheaper with the same results (docs/performance.md,
+  item 4 of the second fast-replans session; the lane search alone was 39 % of recording a
+  scene):
 
   1. **The closest lane.** After every integration step highway-env computes
      ``distance_with_heading`` to every lane of the network (``RoadNetwork.
@@ -26,6 +27,7 @@ import weakref
 
 import numpy as np
 from highway_env.road.lane import CircularLane, SineLane, StraightLane
+from highway_env.road.road import LaneIndex, RoadNetwork
 from highway_env.vehicle.behavior import IDMVehicle
 
 
@@ -50,7 +52,9 @@ class ForwardIDMVehicle(IDMVehicle):
             if self.road.record_history:
                 self.history.appendleft(self.create_from(self))
 
-    def predict_trajectory_constant_speed(self, times: np.ndarray):
+    def predict_trajectory_constant_speed(
+        self, times: np.ndarray
+    ) -> tuple[list[np.ndarray], list[float]]:
         """highway-env's prediction along the route, kept while the inputs stay the same."""
         key = (
             self.position.tobytes(),
@@ -73,10 +77,10 @@ class _LaneBoxes:
 
     def __init__(self, network) -> None:
         self.indexes, self.lanes, boxes, headings = [], [], [], []
-        for _from, to_dict in network.graph.items():
-            for _to, lanes in to_dict.items():
-                for _id, lane in enumerate(lanes):
-                    self.indexes.append((_from, _to, _id))
+        for start, to_dict in network.graph.items():
+            for end, lanes in to_dict.items():
+                for k, lane in enumerate(lanes):
+                    self.indexes.append((start, end, k))
                     self.lanes.append(lane)
                     boxes.append(_box(lane))
                     headings.append(_fixed_heading(lane))
@@ -116,9 +120,18 @@ def _fixed_heading(lane) -> float:
 _BOXES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def closest_lane_index(network, position: np.ndarray, heading: float, current) -> tuple:
+def closest_lane_index(
+    network: RoadNetwork,
+    position: np.ndarray,
+    heading: float,
+    current: LaneIndex | None,
+) -> LaneIndex:
     """``network.get_closest_lane_index(position, heading)``, searching only the lanes that
-    can beat ``current`` (the vehicle's lane index before this step; None: search all)."""
+    can beat ``current`` (the vehicle's lane index before this step; None: search all).
+
+    ``position`` ``[2]`` m, ``heading`` rad. The lane boxes are built once per network and
+    rebuilt when its lane count changes: a network is not edited otherwise once vehicles
+    drive on it (highway-env builds it at reset)."""
     boxes = _BOXES.get(network)
     if boxes is None or boxes.size != _lane_count(network):  # new, or a lane was added
         boxes = _BOXES[network] = _LaneBoxes(network)

@@ -45,6 +45,11 @@ def mixed_parts(spec: str) -> list[str]:
     return [part.strip() for part in spec.split(MIX_SEPARATOR)]
 
 
+def is_generated(spec: str) -> bool:
+    """Whether every part of ``spec`` is a generated road (a new recording each episode)."""
+    return all(part in Scenario.values() for part in mixed_parts(spec))
+
+
 def check_spec(spec: str) -> str:
     """``spec`` if it is a generated road, an existing path (after ``scenarionet:``), or a
     comma-joined mixture of these.

@@ -206,9 +206,16 @@ class Replanner:
         # the sizes, so an episode's result never depends on which others share its call.
         warm = [self.config.warm_start_steps > 0 and eps[o].replans > 0 for o in owner]
         keys = [(w, agent_count(window.arrays)) for w, window in zip(warm, windows, strict=True)]
+        chosen: dict[int, tuple] = {}
         for key in sorted(set(keys)):
             js = [j for j, k in enumerate(keys) if k == key]
-            self._plan([eps[owner[j]] for j in js], [windows[j] for j in js], key[0])
+            plans = self._plan([eps[owner[j]] for j in js], [windows[j] for j in js], key[0])
+            chosen.update(zip(js, plans, strict=True))
+        # Applied after every call and in window order: a warm start reads the plans from
+        # before this replan, and where windows overlap the later window's tokens win, as
+        # in one call for all windows.
+        for j, window in enumerate(windows):
+            _apply_plan(eps[owner[j]], window, *chosen[j])
         planned_now: dict[int, set[int]] = {}
         for o, window in zip(owner, windows, strict=True):
             planned_now.setdefault(o, set()).update(window.plan_rows)
@@ -218,17 +225,19 @@ class Replanner:
             ep.replans += 1
             ep.replan_seconds += (time.perf_counter() - started) / len(eps)
 
-    def _plan(self, eps: list[Episode], windows: list[ModelWindow], warm: bool) -> None:
-        """Sample windows ``windows`` (of episodes ``eps``, one per window) in one call and
-        apply the chosen samples as plans; ``warm``: start from the previous predictions."""
+    def _plan(
+        self, eps: list[Episode], windows: list[ModelWindow], warm: bool
+    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Sample windows ``windows`` (of episodes ``eps``, one per window) in one call;
+        ``warm``: start from the previous predictions. Returns each window's chosen sample
+        ``[K, F, 4]``, its normalised tokens ``[K, Ta, 2]`` and the model's ``valid [K]``."""
         owner = list(range(len(eps)))
         init = None
         if warm:
             init = np.stack([self.warm_start(ep, w) for ep, w in zip(eps, windows, strict=True)])
         pred, best = self._sample(eps, owner, windows, init)
         traj, tokens = pred.trajectory.numpy(), pred.normalized.numpy()
-        for j, (ep, window) in enumerate(zip(eps, windows, strict=True)):
-            _apply_plan(ep, window, traj[j, best[j]], tokens[j, best[j]], pred.valid[j])
+        return [(traj[j, best[j]], tokens[j, best[j]], pred.valid[j]) for j in range(len(windows))]
 
     def warm_start(self, ep: Episode, window: ModelWindow) -> np.ndarray:
         """``[K, Ta, 2]`` normalised tokens to start window ``window``'s sampling from: each

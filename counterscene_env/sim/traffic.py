@@ -92,9 +92,10 @@ class IDMLaneFollower:
     def _other(self, scene: Scene, i: int, t: int) -> Vehicle:
         """Agent ``i`` as a highway-env vehicle on this road, without its lane: highway-env
         would search every lane of the map for it, N times per follower, which on real maps
-        (hundreds of lanes) was most of a real-log episode. Only its position, heading and
-        speed are read (``Road.neighbour_vehicles``), and its lane is set where the priority
-        rule needs it (``_must_yield``)."""
+        (hundreds of lanes) was most of a real-log episode. The IDM reads only its position,
+        heading and speed (``Road.neighbour_vehicles``). Within 40 m the yielding check
+        (``_must_yield``) still costs searches: highway-env's conflict test predicts both
+        vehicles by copying and stepping them, and the priority rule sets its lane."""
         other = Vehicle(None, scene.positions[i, t].copy(), float(scene.yaws[i, t]), 0.0)
         other.road = self.road
         return other

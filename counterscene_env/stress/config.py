@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from counterscene_env.planners import make_planner
-from counterscene_env.scene.sources import check_spec
+from counterscene_env.scene.sources import check_spec, is_generated
 from counterscene_env.sim import SimConfig
 
 #: Prefix of a Stable-Baselines3 policy in ``--planner`` (``sb3:PATH.zip``).
@@ -49,6 +49,8 @@ class StressConfig:
         if self.egos < 1:
             raise ValueError(f"egos must be >= 1, got {self.egos}")
         check_spec(self.scenario)
+        if is_generated(self.scenario):
+            object.__setattr__(self, "egos", 1)  # a new scene every episode: no ego choices
         if self.is_sb3:
             path = self.policy_path
             if not path.is_file():

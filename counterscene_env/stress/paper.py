@@ -27,7 +27,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from counterscene_env.config import COMMONROAD_PREFIX, SCENARIONET_PREFIX, Scenario
+from counterscene_env.config import COMMONROAD_PREFIX, SCENARIONET_PREFIX
+from counterscene_env.scene.sources import is_generated
 from counterscene_env.sim.config import SimConfig
 from counterscene_env.stress.config import StressConfig, run_identity
 from counterscene_env.stress.episodes import run_episodes
@@ -100,8 +101,8 @@ TABLE_ROWS = {**TABLES, "real": TABLES["main"]}
 
 
 def is_real(spec: str) -> bool:
-    """Whether a scenario spec is a set of real logs (not a generated road)."""
-    return spec not in Scenario.values()
+    """Whether a scenario spec holds stored logs (not only generated roads)."""
+    return not is_generated(spec)
 
 
 def rows_for(spec: str) -> tuple[str, ...]:
@@ -153,8 +154,16 @@ def row_config(
         planner=planner,
         sim=SimConfig.from_mapping({**base, **row.sim}),
         batch=batch,
-        egos=egos if is_real(spec) else 1,
+        egos=egos,
     )
+
+
+def _check_dirs_differ(specs: Sequence[str]) -> None:
+    """Refuse scenarios whose rows would share a folder (real-log folders of one name)."""
+    dirs = [scenario_dir(spec) for spec in specs]
+    twice = sorted({d for d in dirs if dirs.count(d) > 1})
+    if twice:
+        raise ValueError(f"two scenarios would share the output folder {twice}: rename one")
 
 
 def run_rows(
@@ -183,6 +192,7 @@ def run_rows(
     from counterscene_env.world_model.checkpoint import load_model
 
     plan = []
+    _check_dirs_differ(specs)
     for spec in specs:
         for name in rows_for(spec):
             config = row_config(spec, ROWS[name], episodes, seed, planner, batch, base, egos)

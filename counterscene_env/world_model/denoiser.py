@@ -253,7 +253,7 @@ class Denoiser(nn.Module):
         K = history.shape[1]
         if K < cfg.num_agents:  # a trimmed batch (``window.collate(trim=True)``)
             # Embed on the config's K slots, as the untrimmed batch would, and cut back: a
-            # matrix product's rounding on the CPU depends on its row count below about 12,
+            # matrix product's rounding on the CPU depends on its row count,
             # and these products have B K (or B K K) rows, so a scene's context would
             # otherwise depend on how many scenes share its call (docs/performance.md).
             pad = _AgentPad(K, cfg.num_agents)
