@@ -88,23 +88,9 @@ def test_paper_tables_on_stored_logs_resumes_and_writes_timings_apart(generated,
     logs = tmp_path / "logs.npz"
     save_scenes([generated["merge"], generated["intersection"]], logs)
     out = tmp_path / "tables"
-    code = main(
-        [
-            "paper-tables",
-            "--episodes",
-            "2",
-            "--scenario",
-            str(logs),
-            "--out",
-            str(out),
-            "--quiet",
-            "--set",
-            "duration=3.2",
-            "num_samples=2",
-            "--json",
-        ]
-    )
-    assert code == 0
+    args = ["paper-tables", "--scenario", str(logs), "--out", str(out), "--quiet"]
+    args += ["--set", "duration=3.2", "num_samples=2"]
+    assert main([*args, "--episodes", "2", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     real = doc["tables"]["logs.npz"]["real"]
     assert list(real) == list(paper.TABLES["main"])  # CounterScene first
@@ -117,47 +103,12 @@ def test_paper_tables_on_stored_logs_resumes_and_writes_timings_apart(generated,
     assert json.loads((out / "timings.json").read_text())["row_seconds"]["logs.npz"]
     lines = {r: (out / "logs.npz" / r / "episodes.jsonl").read_text() for r in real}
     first = (out / "tables.json").read_text()
-    assert (
-        main(
-            [
-                "paper-tables",
-                "--episodes",
-                "2",
-                "--scenario",
-                str(logs),
-                "--out",
-                str(out),
-                "--quiet",
-                "--set",
-                "duration=3.2",
-                "num_samples=2",
-            ]
-        )
-        == 0
-    )
+    assert main([*args, "--episodes", "2"]) == 0
     again = {r: (out / "logs.npz" / r / "episodes.jsonl").read_text() for r in real}
     assert again == lines  # nothing ran twice
     assert json.loads((out / "tables.json").read_text())["tables"] == json.loads(first)["tables"]
     assert "Real logs at 3 s, 5 s and 7 s" in (out / "tables.md").read_text()
     # --tables-only runs nothing, even when more episodes are asked for.
-    assert (
-        main(
-            [
-                "paper-tables",
-                "--episodes",
-                "5",
-                "--scenario",
-                str(logs),
-                "--out",
-                str(out),
-                "--quiet",
-                "--set",
-                "duration=3.2",
-                "num_samples=2",
-                "--tables-only",
-            ]
-        )
-        == 0
-    )
+    assert main([*args, "--episodes", "5", "--tables-only"]) == 0
     assert {r: (out / "logs.npz" / r / "episodes.jsonl").read_text() for r in real} == lines
     assert "the episodes run so far of 5 per row" in (out / "tables.md").read_text()

@@ -6,7 +6,13 @@ import argparse
 import shlex
 import sys
 
-from counterscene_env.cli.common import add_json_flag, parse_overrides
+from counterscene_env.cli.common import (
+    add_json_flag,
+    add_model_flag,
+    add_quiet_flag,
+    add_seed_flag,
+    parse_overrides,
+)
 
 
 def add_paper_tables(sub) -> None:
@@ -47,7 +53,7 @@ def add_paper_tables(sub) -> None:
         help="folders of CommonRoad scenarios (the real-logs table)",
     )
     pp.add_argument("--planner", default="idm", help="ego planner (default idm)")
-    pp.add_argument("--seed", type=int, default=300000, help="seed of episode 0 (default 300000)")
+    add_seed_flag(pp, 300000, "seed of episode 0 (default 300000)")
     pp.add_argument("--workers", type=int, default=1, help="processes per row (default 1)")
     pp.add_argument("--batch", type=int, default=4, help="episodes per batch (default 4)")
     pp.add_argument(
@@ -58,7 +64,7 @@ def add_paper_tables(sub) -> None:
         "each pass over its scenes seats the next moving vehicle as the ego (default 1: "
         "the recorded ego only)",
     )
-    pp.add_argument("--model", default="default", help="model directory (default: shipped)")
+    add_model_flag(pp)
     pp.add_argument(
         "--set",
         nargs="*",
@@ -73,7 +79,7 @@ def add_paper_tables(sub) -> None:
         help="run nothing: write the tables from the episodes already in OUT (a row may hold "
         "fewer than --episodes; its n says so)",
     )
-    pp.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_quiet_flag(pp)
     add_json_flag(
         pp, "print tables.json (every figure, interval and paired test) as one JSON object"
     )

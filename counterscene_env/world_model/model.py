@@ -429,7 +429,6 @@ class WorldModel(nn.Module):
             hook = guidance
 
         self.scheduler.set_timesteps(steps)
-        shape = (B * num_samples, K, c.action_tokens, 2)
         per_scene = isinstance(generator, Sequence)
         if per_scene and len(generator) != B:
             raise ValueError(f"{len(generator)} generators for a batch of {B} scenes")
@@ -437,16 +436,12 @@ class WorldModel(nn.Module):
         # Noise is drawn for the config's K agents whatever the batch's K: a batch whose
         # trailing padding was cut (``window.collate(trim=True)``) draws the same numbers for
         # its real agents as the full batch, and so the same samples.
-        drawn = max(K, c.num_agents)
+        gens = generator if per_scene else [generator]
+        rows = num_samples if per_scene else B * num_samples
+        draw = (rows, max(K, c.num_agents), c.action_tokens, 2)  # [S, K, Ta, 2]
 
         def randn() -> torch.Tensor:
-            if not per_scene:
-                full = (B * num_samples, drawn, *shape[2:])
-                return torch.randn(full, generator=generator, device=device)[:, :K]
-            one = (num_samples, drawn, *shape[2:])
-            return torch.cat(
-                [torch.randn(one, generator=g, device=device)[:, :K] for g in generator]
-            )
+            return torch.cat([torch.randn(draw, generator=g, device=device)[:, :K] for g in gens])
 
         x, timesteps = self._start(randn(), init, init_steps, num_samples)
         for t in timesteps:
