@@ -66,6 +66,11 @@ def test_rows_of_each_table_and_refused_settings():
         paper.row_config("merge", paper.ROWS["random"], 1, 0, "idm", 1, {"selector": "ttc"})
     with pytest.raises(ValueError, match="nope"):
         paper.row_config("merge", paper.ROWS["random"], 1, 0, "idm", 1, {"nope": 1})
+    # --tables main: the main table's rows only, on generated roads; real logs keep theirs.
+    assert paper.rows_for("merge", ["main"]) == paper.TABLES["main"]
+    assert paper.rows_for("scenarionet:/data/logs", ["ablation"]) == paper.TABLES["main"]
+    with pytest.raises(ValueError, match="tables must be some of"):
+        paper.rows_for("merge", ["mian"])
     # A mixture of generated roads is generated: the full tables, no ego choices.
     assert paper.rows_for("intersection,merge") == paper.rows_for("intersection")
     assert (

@@ -254,6 +254,39 @@ def test_traffic_yields_to_the_ego_but_a_guided_adversary_does_not(model, guidan
         assert not held and gap < 4.0
 
 
+def platoon_scene(T=90, c=30):
+    """:func:`rear_scene` with a third car at 3 m/s from x = 45, between the follower (row 1,
+    the adversary) and the ego (row 0): the follower cannot reach the ego without hitting it."""
+    base = rear_scene(T, c)
+    t = np.arange(T) * 0.1 - c * 0.1
+    third = np.stack([45 + 3.0 * t, np.zeros(T)], -1)
+    positions = np.concatenate([base.positions, third[None]])
+    speeds = np.concatenate([base.speeds, np.full((1, T), 3.0)])
+    return make_scene(positions, speeds=speeds, current_index=c)
+
+
+@pytest.mark.parametrize("manners", [True, False])
+def test_a_guided_adversary_yields_to_third_parties_unless_told_not_to(model, manners):
+    config = SimConfig(
+        duration=5.0,
+        num_samples=2,
+        strict_gates=False,
+        guidance="full",
+        adversary_yields_to_others=manners,
+    )
+    loop = ClosedLoop(model, config)
+    infos = loop.reset([platoon_scene()], [0])
+    assert infos[0]["adversary"] == "a1"
+    while not loop.done.all():
+        loop.step(np.zeros((1, 2)))
+    sim, held = loop.scene(0), loop.motion_source(0)[1] == MotionSource.YIELD
+    gap = np.abs(sim.positions[2, 30:, 0] - sim.positions[1, 30:, 0]).min()
+    if manners:  # its margins toward the ego are gone, not its manners toward the third car
+        assert held.any() and gap > 4.5
+    else:  # the paper's adversary: no reflexes at all, so it drives into the third car
+        assert not held.any() and gap < 4.0
+
+
 def test_a_warm_start_begins_from_the_previous_plan_shifted_to_now(model, generated):
     config = dataclasses.replace(SHORT, warm_start_steps=3, replan_every=5)
     loop = ClosedLoop(model, config)

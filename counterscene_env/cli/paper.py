@@ -74,6 +74,14 @@ def add_paper_tables(sub) -> None:
         "duration=7; the rows' own keys (selector, guidance) cannot be set",
     )
     pp.add_argument(
+        "--tables",
+        nargs="+",
+        choices=("main", "selection", "ablation"),
+        default=["main", "selection", "ablation"],
+        help="the generated roads' tables to run (default: all three; real logs always get "
+        "the real-logs table)",
+    )
+    pp.add_argument(
         "--tables-only",
         action="store_true",
         help="run nothing: write the tables from the episodes already in OUT (a row may hold "
@@ -123,6 +131,7 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         on_row=on_row,
         run=not args.tables_only,
+        tables=args.tables,
     )
     if not results:
         raise ValueError(f"{args.out}: no episodes of these scenarios to tabulate")
@@ -130,10 +139,7 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
     for where, runs in results.items():  # compute time from the records (resumes included)
         for row, records in runs.items():
             seconds.setdefault(where, {})[row] = sum(float(r.get("seconds", 0)) for r in records)
-    tables_of = {
-        paper.scenario_dir(s): paper.REAL_TABLES if paper.is_real(s) else paper.GENERATED_TABLES
-        for s in specs
-    }
+    tables_of = {paper.scenario_dir(s): paper.tables_for(s, args.tables) for s in specs}
     built = paper_document.build(
         results,
         paper.TABLE_ROWS,
@@ -150,6 +156,7 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         "model": args.model,
         "settings": base,
         "tables_only": args.tables_only,
+        "tables": list(args.tables),
     }
     page = paper_document.write(args.out, built, meta, seconds)
     if args.json:

@@ -59,8 +59,13 @@ class SimConfig:
             metres of the window's centre [m]; farther agents get windows of their own.
         max_windows: model windows per episode and replan (the ego's plus extra ones).
         traffic_yields: ordinary traffic slows along its planned path rather than drive into
-            another agent's box (sim/yielding.py); egos and a guided adversary never yield.
-            False: every plan is followed to the letter.
+            another agent's box (sim/yielding.py); egos never yield. False: every plan is
+            followed to the letter.
+        adversary_yields_to_others: a guided adversary yields like ordinary traffic to
+            everyone but the egos: the guidance removes its margins toward the ego, not its
+            manners toward third parties (a departure from the paper, whose adversary has no
+            reflexes; docs/design.md, "Where we depart"). False: it yields to no one.
+            Needs ``traffic_yields``.
         road_keeping: a step that would take an agent other than an ego off the road is moved
             sideways onto its lane (sim/road_keeping.py). False: the plans' own off-road
             steps stand.
@@ -86,6 +91,7 @@ class SimConfig:
     cover_radius: float = bounded(25.0, gt=0)
     max_windows: int = bounded(1, ge=1)
     traffic_yields: bool = True
+    adversary_yields_to_others: bool = True
     road_keeping: bool = True
     memory_limit_gb: float | None = bounded(None, gt=0)
 

@@ -7,8 +7,9 @@ An agent exists at a step exactly when the log says so. Each step, in this order
   follower drives by IDM (``IDM``); one whose plan ran out keeps its speed and course
   (``COAST``);
 - **reflexes of the ordinary traffic** (never the egos): an agent about to run into another
-  brakes along its path instead (``YIELD``, ``sim/yielding.py``; a guided adversary never
-  does: its margins are what the guidance removes), and a step that would leave the road is
+  brakes along its path instead (``YIELD``, ``sim/yielding.py``; a guided adversary yields
+  to everyone but the egos, its margins toward them being what the guidance removes, or to
+  no one with ``adversary_yields_to_others`` off), and a step that would leave the road is
   moved sideways onto the lane (``KEEP``, ``sim/road_keeping.py``);
 - the egos advance by their actions through highway-env's bicycle model, or are written from
   given states (``EGO``).
@@ -41,8 +42,9 @@ def advance(
         actions: ``[E, 2]`` the egos' actions (acceleration m/s^2, steering rad), or None.
         states: per ego, ``[4]`` (x m, y m, yaw rad, speed m/s) written as its next state, or
             None to use its action.
-        config: closed-loop settings (``traffic_yields``, ``road_keeping``).
-        guided: the guidance is on (a guided adversary never yields).
+        config: closed-loop settings (``traffic_yields``, ``adversary_yields_to_others``,
+            ``road_keeping``).
+        guided: the guidance is on (a guided adversary never yields to an ego).
     """
     t, t1 = ep.t, ep.t + 1
     log = ep.factual
@@ -120,17 +122,25 @@ def _yield(
         return []
     t, t1, dt = ep.t, ep.t + 1, ep.factual.dt
     log = ep.factual
-    exempt = set(ep.egos)
-    if guided:
-        exempt.update(a for a in ep.adversaries if a is not None)
+    # A guided adversary's margins toward the egos are what the guidance removes; with
+    # ``adversary_yields_to_others`` it still yields to everyone else (docs/design.md,
+    # "Where we depart"), else to no one.
+    adversaries = {a for a in ep.adversaries if a is not None} if guided else set()
+    exempt = set() if config.adversary_yields_to_others else adversaries
     here = np.flatnonzero(ep.valid[:, t])
     xy, yaw, speed = ep.positions[here, t], ep.yaws[here, t], ep.speeds[here, t]
     velocity = speed[:, None] * np.stack([np.cos(yaw), np.sin(yaw)], -1)
     others = (here, xy, yaw, log.extents[here], velocity)
+    keep = ~np.isin(here, ep.egos)
+    third_parties = tuple(a[keep] for a in others)  # what an adversary yields to
     held = []
-    movers = np.flatnonzero((on_plan | replay | idm) & ep.valid[:, t])
-    # Rows whose next pose is final: written already and not subject to yielding (a guided
-    # adversary, an entering car), then each yielding row once it is done.
+    moving = (on_plan | replay | idm) & ep.valid[:, t]
+    # The egos move after everyone else, by their own policies: what the log or a plan
+    # wrote for them at t + 1 is no place to yield to.
+    moving[ep.egos] = False
+    movers = np.flatnonzero(moving)
+    # Rows whose next pose is final: written already and not subject to yielding (an
+    # adversary that yields to no one, an entering car), then each yielding row once done.
     settled = (on_plan | replay | idm) & ep.valid[:, t1]
     settled[movers] = False
     settled[ep.egos] = False
@@ -146,7 +156,8 @@ def _yield(
             continue
         lagging = done < arc[due - 1] - 1e-6 and not idm[r]  # IDM keeps its own speed
         desired = arc[due] - arc[due - 1]
-        step = _allowed_step(ep, int(r), (path, path_yaw, arc), done, desired, lagging, others)
+        seen = third_parties if r in adversaries else others
+        step = _allowed_step(ep, int(r), (path, path_yaw, arc), done, desired, lagging, seen)
         on_time = not lagging and step >= desired - 1e-9
         if on_time:  # the plan's (or log's, or IDM's) point, already written
             now_done, pose = arc[due], (ep.positions[r, t1].copy(), float(ep.yaws[r, t1]))
@@ -154,7 +165,7 @@ def _yield(
             now_done = min(done + step, arc[-1])
             pose = yielding.point_at(path, path_yaw, arc, now_done)
         # The last guard: never end a step inside a box we were clear of.
-        if _moves_into_others(ep, int(r), pose, others, settled):
+        if _moves_into_others(ep, int(r), pose, seen, settled):
             on_time, now_done = False, done
             pose = (ep.positions[r, t].copy(), float(ep.yaws[r, t]))
         settled[r] = True

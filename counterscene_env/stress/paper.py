@@ -105,9 +105,21 @@ def is_real(spec: str) -> bool:
     return not is_generated(spec)
 
 
-def rows_for(spec: str) -> tuple[str, ...]:
-    """The rows a scenario needs, in run order (the reference row first)."""
-    tables = REAL_TABLES if is_real(spec) else GENERATED_TABLES
+def tables_for(spec: str, generated: Sequence[str] = GENERATED_TABLES) -> tuple[str, ...]:
+    """The tables of a scenario: :data:`REAL_TABLES` for real logs, else ``generated`` (a
+    subset of :data:`GENERATED_TABLES`, in that order)."""
+    unknown = sorted(set(generated) - set(GENERATED_TABLES))
+    if unknown or not generated:
+        raise ValueError(f"tables must be some of {list(GENERATED_TABLES)}, got {list(generated)}")
+    if is_real(spec):
+        return REAL_TABLES
+    return tuple(t for t in GENERATED_TABLES if t in generated)
+
+
+def rows_for(spec: str, generated: Sequence[str] = GENERATED_TABLES) -> tuple[str, ...]:
+    """The rows a scenario needs for its tables (:func:`tables_for`), in run order (the
+    reference row first)."""
+    tables = tables_for(spec, generated)
     out: list[str] = []
     for table in tables:
         out += [r for r in TABLE_ROWS[table] if r not in out]
@@ -180,8 +192,12 @@ def run_rows(
     progress: bool = True,
     on_row: Callable[[str, str, int], None] | None = None,
     run: bool = True,
+    tables: Sequence[str] = GENERATED_TABLES,
 ) -> dict[str, dict[str, list[dict]]]:
     """Run (or finish) every row each scenario needs; ``{scenario dir: {row: records}}``.
+
+    ``tables``: the generated roads' tables to run (:func:`tables_for`); real logs always
+    run the real-logs table.
 
     ``on_row(scenario dir, row, episodes already done)`` is called before each row runs.
     Every config is checked before the first episode runs, so a bad spec or planner fails
@@ -194,7 +210,7 @@ def run_rows(
     plan = []
     _check_dirs_differ(specs)
     for spec in specs:
-        for name in rows_for(spec):
+        for name in rows_for(spec, tables):
             config = row_config(spec, ROWS[name], episodes, seed, planner, batch, base, egos)
             if config.is_sb3:
                 raise ValueError("paper-tables runs the built-in planners (idm, log, ...)")
