@@ -367,6 +367,16 @@ def test_arrival_gap_gate_under_strict():
     assert select_adversary("causal", positions, valid, 0, dt=DT, strict=False).conflict is not None
 
 
+def test_a_follower_closing_in_is_no_late_arrival_under_strict():
+    # 30 m behind the ego at 20 m/s: it reaches the ego's start 1.5 s later (its headway) and
+    # the ego itself at index 30. The gap gate is for crossing conflicts only.
+    positions, valid = stack(ego_track(), track(-30.0 + 2.0 * STEPS, 0.0))
+    c = encounter(positions, valid, 0, 1, dt=DT)
+    assert (c.subtype, c.tier, c.ego_step, c.adversary_step) == (REAR_APPROACH, 2, 0, 15)
+    assert c.arrival_gap == pytest.approx(1.5)
+    assert select_adversary("causal", positions, valid, 0, dt=DT).conflict.agent == 1
+
+
 # ---------------------------------------------------------------- validity
 
 

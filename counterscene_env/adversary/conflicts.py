@@ -36,9 +36,10 @@ Causal mining (``method="causal"``), faithful to the paper:
    (intersection) or ``-60 - 30 min(s, 1)`` (following); ``FALLBACK_WEIGHT`` (-50) for callers
    with no conflict.
 
-What the paper lacks and we add (docs/design.md, "Strict selection gates"): optional *strict* gates (on by default in
-:func:`select_adversary`, off in the paper preset) that withdraw the tier of a conflict that the
-guidance cannot realistically turn into a near miss: ``d_min >= 15 m``, arrival gap >= 1.5 s, an
+What the paper lacks and we add (docs/design.md, "Strict selection gates"): optional
+*strict* gates (on by default in :func:`select_adversary`, off in the paper preset) that
+withdraw the tier of a conflict that the guidance cannot realistically turn into a near miss:
+``d_min >= 15 m``, for a crossing (``intersection``) conflict an arrival gap >= 1.5 s, an
 encounter on the last jointly valid step (truncated by the horizon, so not a real closest
 approach) or, for both, on the first (the two are closest *now* and drift apart: no conflict
 lies ahead for the guidance to sharpen; side-by-side cars at a junction are the common case),
@@ -83,8 +84,11 @@ FALLBACK_WEIGHT = -50.0
 #: Two agents that never come within this (m) of each other are no conflict worth guiding:
 #: the paper's tier 1 has no distance limit at all, so a car on a far parallel road qualifies.
 STRICT_MAX_DISTANCE = 15.0
-#: Arrival gap (s) above which the two agents pass the conflict point at unrelated times; the
-#: progressive guidance can compress a gap, but only a short one without implausible motion.
+#: Arrival gap (s) above which two *crossing* agents pass the conflict point at unrelated
+#: times; the progressive guidance can compress a gap, but only a short one without
+#: implausible motion. Following conflicts are exempt: their "gap" is the time headway at
+#: which one reaches the other's path, ordinary for a follower, and it is the closing of
+#: exactly that headway that the guidance turns into a rear-end conflict.
 STRICT_MAX_GAP = 1.5
 #: Mean speed (m/s) over its valid steps that a candidate must exceed: guidance acts on the
 #: adversary's actions, and a parked car's "encounter" is only the ego driving past it.
@@ -347,13 +351,14 @@ STRICT_GATES = ("far", "late", "truncated", "drifting_apart", "parked")
 
 def strict_gate_failures(tracks: Tracks, conflict: Conflict, start_step: int) -> list[str]:
     """The strict gates (module constants) a conflict fails, by name (:data:`STRICT_GATES`):
-    ``far`` (d_min), ``late`` (arrival gap), ``truncated`` (closest on the last jointly valid
-    step), ``drifting_apart`` (both closest on the first), ``parked`` (mean speed)."""
+    ``far`` (d_min), ``late`` (arrival gap, crossing conflicts only), ``truncated`` (closest on
+    the last jointly valid step), ``drifting_apart`` (both closest on the first), ``parked``
+    (mean speed)."""
     joint = np.flatnonzero(tracks.valid[tracks.ego] & tracks.valid[conflict.agent])
     first, last = start_step + int(joint[0]), start_step + int(joint[-1])
     failed = {
         "far": conflict.min_distance >= STRICT_MAX_DISTANCE,
-        "late": conflict.arrival_gap >= STRICT_MAX_GAP,
+        "late": conflict.type == INTERSECTION and conflict.arrival_gap >= STRICT_MAX_GAP,
         "truncated": last in (conflict.ego_step, conflict.adversary_step),
         "drifting_apart": conflict.ego_step == conflict.adversary_step == first,
         "parked": mean_speed(tracks, conflict.agent) <= STRICT_MIN_SPEED,
