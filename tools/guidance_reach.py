@@ -54,13 +54,8 @@ def recording_hook(record: list):
     def wrapped(model, batch, targets, num_samples, config):
         hook = make(model, batch, targets, num_samples, config)
         parts = dataclasses.replace(config, jerk=False, map_weight=0.0)
-        tg, state = hook.targets, hook.state
-        N, K = state.shape[:2]
-        rows = tg.adversary_row
-        has = rows >= 0
-        mask = torch.zeros(N, K, dtype=torch.bool)
-        mask[has, rows[has]] = True
-        mask = mask[..., None, None]
+        tg, state, mask = hook.targets, hook.state, hook.mask
+        has = tg.adversary_row >= 0
 
         def grad_of(cfg, mean):
             x = mean.detach().requires_grad_(True)
@@ -89,7 +84,7 @@ def recording_hook(record: list):
                 )
             return hook(mean, sigma, t, x0)
 
-        for name in ("on_lane", "lanes", "state", "targets"):
+        for name in ("on_lane", "lanes", "state", "targets", "mask"):
             setattr(recorded, name, getattr(hook, name))
         return recorded
 
@@ -113,7 +108,6 @@ def main() -> None:
     record: list[dict] = []
     replan_module.make_guidance_hook = recording_hook(record)
     shifts, asks = [], []
-    dt = 0.1
     for i, scene in enumerate(scenes_for(args.scenario, args.episodes, args.seed)):
         plain, sel = first_plan(unguided, scene, args.seed + i)
         if sel.conflict is None:
@@ -121,7 +115,7 @@ def main() -> None:
         plan, _ = first_plan(guided, scene, args.seed + i)
         a, c = sel.conflict.agent, sel.conflict
         now = scene.current_index
-        steps = [round(s / dt) - 1 for s in SECONDS]
+        steps = [round(s / scene.dt) - 1 for s in SECONDS]
         shifts.append(np.linalg.norm(plan[a, steps] - plain[a, steps], axis=-1))
         # Where the conflict wants the adversary: at c when the ego is there (full compression).
         j = int(np.clip(min(c.ego_step, c.adversary_step) - now - 1, 0, plan.shape[1] - 1))

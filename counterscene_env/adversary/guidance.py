@@ -378,6 +378,7 @@ def make_guidance_hook(
     hook.lanes = lanes
     hook.state = state
     hook.targets = tg
+    hook.mask = mask  # [N, K, 1, 1] the adversary's rows: the only ones the guidance moves
     return hook
 
 

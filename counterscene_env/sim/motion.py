@@ -131,8 +131,9 @@ def _yield(
     xy, yaw, speed = ep.positions[here, t], ep.yaws[here, t], ep.speeds[here, t]
     velocity = speed[:, None] * np.stack([np.cos(yaw), np.sin(yaw)], -1)
     others = (here, xy, yaw, log.extents[here], velocity)
-    keep = ~np.isin(here, ep.egos)
-    third_parties = tuple(a[keep] for a in others)  # what an adversary yields to
+    if adversaries - exempt:  # what a yielding adversary sees: everyone but the egos
+        keep = ~np.isin(here, ep.egos)
+        third_parties = tuple(a[keep] for a in others)
     held = []
     moving = (on_plan | replay | idm) & ep.valid[:, t]
     # The egos move after everyone else, by their own policies: what the log or a plan
