@@ -382,6 +382,50 @@ def test_map_guidance_pulls_samples_toward_the_lanes(tiny, scene_batch):
     assert off(1.0) < off(0.0)
 
 
+@pytest.mark.parametrize("lanes_count", [0, 3, 48])
+def test_lane_excess_is_the_exact_distance_outside_the_nearest_lane_strip(lanes_count, monkeypatch):
+    """The off-lane distance (guidance, realism cost, training loss) searches only the nearest
+    lane pieces, yet equals the point-to-centre-line distance less half the width, over all
+    lanes (shapely, float64), and its values and gradients are those of the search over every
+    segment: on-lane, off-lane and far-off points, maps with fewer lanes than it searches, and
+    a map without lanes (1e3 m everywhere)."""
+    import shapely
+
+    from counterscene_env.world_model import map_guidance
+
+    g = torch.Generator().manual_seed(7)
+    N, P, A, T = 2, 10, 5, 16
+    M = max(lanes_count, 1)
+    start = torch.rand(N, M, 1, 2, generator=g) * 100 - 50
+    turn = torch.cumsum(torch.randn(N, M, P, 1, generator=g) * 0.1, 2)
+    heading = torch.rand(N, M, 1, 1, generator=g) * 6.3 + turn
+    lanes = start + torch.cumsum(2.2 * torch.cat([heading.cos(), heading.sin()], -1), 2)
+    valid = torch.rand(N, M, generator=g) > 0.2 if lanes_count else torch.zeros(N, M, dtype=bool)
+    widths = 3.0 + torch.rand(N, M, generator=g)
+    near = lanes[:, torch.arange(A) % M][..., torch.arange(T) % P, :]  # [N, A, T, 2]
+    points = near + torch.randn(N, A, T, 2, generator=g) * 4
+    points[:, 0] *= 5  # far from most lanes
+    points.requires_grad_(True)
+    got = map_guidance.lane_excess(points, lanes, valid, widths)
+    (grad,) = torch.autograd.grad(got.sum(), points)
+    for n in range(N):
+        strips = [
+            (shapely.LineString(lanes[n, m].double().numpy()), float(widths[n, m]) / 2)
+            for m in range(M)
+            if valid[n, m]
+        ]
+        for a in range(A):
+            for t in range(T):
+                p = shapely.Point(points[n, a, t].detach().double().numpy())
+                want = min((max(line.distance(p) - h, 0.0) for line, h in strips), default=1e3)
+                assert float(got[n, a, t]) == pytest.approx(want, abs=1e-4)
+    monkeypatch.setattr(map_guidance, "NEAREST_PIECES", 10**6)  # every segment
+    x = points.detach().requires_grad_(True)
+    every = map_guidance.lane_excess(x, lanes, valid, widths)
+    assert torch.equal(got, every)
+    assert torch.equal(grad, torch.autograd.grad(every.sum(), x)[0])
+
+
 def test_lane_steering_turns_a_drifting_car_back_onto_the_road():
     """Final-step lane keeping: a plan that curves off the road is steered back onto a lane by
     its yaw rates alone; a car that is off every lane now is left alone."""
