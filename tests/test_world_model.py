@@ -70,6 +70,21 @@ def test_window_config_matches_the_model(tiny):
     assert (w.lane_points, w.agent_radius) == (c.lane_points, c.agent_radius)
 
 
+@pytest.mark.parametrize("local_lanes", [0, 3])
+def test_the_map_memory_of_a_sampling_call_changes_nothing(local_lanes, generated):
+    """A sampling call projects the lane tokens' keys and values once (``Denoiser.remember``)
+    instead of at every step: the network's output is the same, bit for bit."""
+    model = _model(TINY.replace(local_lanes=local_lanes))
+    batch = _batch(model, generated.values())
+    ctx = model.context(batch).repeat(2)
+    x = torch.randn(ctx.agent.shape[0], ctx.agent.shape[1], model.config.action_tokens, 2)
+    t = torch.full((x.shape[0],), 7)
+    with torch.no_grad():
+        kept = model.denoiser.remember(ctx)
+        assert kept.memory is not None and len(kept.memory) == model.config.num_blocks
+        assert torch.equal(model.denoiser(x, t, ctx), model.denoiser(x, t, kept))
+
+
 def test_same_seed_same_sample_different_seed_different(tiny, scene_batch):
     def draw(seed):
         return tiny.sample(scene_batch, 2, torch.Generator().manual_seed(seed))

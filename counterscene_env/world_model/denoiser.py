@@ -26,6 +26,7 @@ actions (x0) or the noise (epsilon).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -66,6 +67,7 @@ class Context:
     map_bias: torch.Tensor
     local_tokens: torch.Tensor | None = None
     local_bias: torch.Tensor | None = None
+    memory: list[MapMemory] | None = None
 
     def cut_agents(self, k: int) -> Context:
         """The context of the first ``k`` agent slots."""
@@ -83,10 +85,22 @@ class Context:
         )
 
     def repeat(self, n: int) -> Context:
-        """Each scene ``n`` times in a row (for ``n`` samples in one batched call)."""
+        """Each scene ``n`` times in a row (for ``n`` samples in one batched call); the
+        memory cache is dropped (``Denoiser.remember`` builds it for the repeated context)."""
+        tensors = {k: v for k, v in vars(self).items() if k != "memory"}
         return Context(
-            *(None if t is None else t.repeat_interleave(n, dim=0) for t in vars(self).values())
+            **{k: None if t is None else t.repeat_interleave(n, dim=0) for k, t in tensors.items()}
         )
+
+
+@dataclass
+class MapMemory:
+    """One block's keys and values of the map attentions, ``(k, v)`` each ``[B', heads, Lk,
+    d / heads]``: the lane tokens do not change between diffusion steps, so a sampling call
+    projects them once instead of at every step (docs/performance.md)."""
+
+    map: tuple[torch.Tensor, torch.Tensor]
+    local: tuple[torch.Tensor, torch.Tensor] | None
 
 
 class Attention(nn.Module):
@@ -100,15 +114,28 @@ class Attention(nn.Module):
         self.out = nn.Linear(d, d)
         self.dropout = dropout
 
-    def forward(self, x: torch.Tensor, memory: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-        """``x [..., Lq, d]`` attends to ``memory [..., Lk, d]``; ``bias`` broadcasts to
-        ``[..., heads, Lq, Lk]``."""
+    def keys_values(self, memory: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``memory [..., Lk, d]`` -> keys and values ``[B', heads, Lk, d / heads]`` each
+        (the batch dims flattened to ``B'``)."""
+        lk, d = memory.shape[-2:]
+        h = self.heads
+        k, v = self.kv(memory).reshape(-1, lk, 2, h, d // h).permute(2, 0, 3, 1, 4)
+        return k, v
+
+    def forward(
+        self,
+        x: torch.Tensor,
+        memory: torch.Tensor,
+        bias: torch.Tensor,
+        kv: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ) -> torch.Tensor:
+        """``x [..., Lq, d]`` attends to ``memory [..., Lk, d]`` (or to its keys and values
+        ``kv``, from ``keys_values``); ``bias`` broadcasts to ``[..., heads, Lq, Lk]``."""
         *batch, lq, d = x.shape
-        lk = memory.shape[-2]
         h = self.heads
         # Flatten the batch dims to one: torch's fused CPU kernels take 4-D inputs only.
         q = self.q(x).reshape(-1, lq, h, d // h).transpose(1, 2)
-        k, v = self.kv(memory).reshape(-1, lk, 2, h, d // h).permute(2, 0, 3, 1, 4)
+        k, v = self.keys_values(memory) if kv is None else kv
         if k.shape[0] != q.shape[0]:  # memory shared by several queries' batch entries
             raise ValueError("memory batch dims must match the queries'")
         bias = bias.expand(*batch, *bias.shape[-3:]).reshape(-1, *bias.shape[-3:])
@@ -141,17 +168,28 @@ class Block(nn.Module):
             nn.Linear(cfg.mlp_ratio * d, d),
         )
 
-    def forward(self, x: torch.Tensor, ctx: Context) -> torch.Tensor:
-        """``x``: ``[B, K, L, d]``."""
+    def remember(self, ctx: Context) -> MapMemory:
+        """This block's map keys and values for ``ctx`` (``MapMemory``)."""
+        local = None
+        if ctx.local_tokens is not None:
+            local = self.local.keys_values(ctx.local_tokens)
+        return MapMemory(self.map.keys_values(ctx.map_tokens), local)
+
+    def forward(
+        self, x: torch.Tensor, ctx: Context, memory: MapMemory | None = None
+    ) -> torch.Tensor:
+        """``x``: ``[B, K, L, d]``; ``memory``: this block's ``remember(ctx)``, if kept."""
         B, K, L, d = x.shape
         y = self.norms[0](x)
         x = x + self.temporal(y, y, ctx.temporal_bias)
         y = self.norms[1](x).transpose(1, 2)  # [B, L, K, d]: attend across agents per position
         x = x + self.social(y, y, ctx.social_bias).transpose(1, 2)
         y = self.norms[2](x).reshape(B, K * L, d)
-        x = x + self.map(y, ctx.map_tokens, ctx.map_bias).reshape(B, K, L, d)
+        kv = None if memory is None else memory.map
+        x = x + self.map(y, ctx.map_tokens, ctx.map_bias, kv).reshape(B, K, L, d)
         if ctx.local_tokens is not None:  # each agent's L tokens attend to its own lanes
-            x = x + self.local(self.local_norm(x), ctx.local_tokens, ctx.local_bias)
+            kv = None if memory is None else memory.local
+            x = x + self.local(self.local_norm(x), ctx.local_tokens, ctx.local_bias, kv)
         return x + self.mlp(self.norms[3](x))
 
 
@@ -308,6 +346,12 @@ class Denoiser(nn.Module):
         local_bias = torch.where(local_ok, 0.0, NEG)[:, :, None, None, :]
         return Context(hist, agent_emb, temporal, social, tokens, map_bias, local, local_bias)
 
+    def remember(self, ctx: Context) -> Context:
+        """``ctx`` with every block's map keys and values (``MapMemory``) computed once, for
+        a sampling call that runs the network several times on the same context. The result
+        is the same, bit for bit: the same products of the same tensors, made once."""
+        return dataclasses.replace(ctx, memory=[block.remember(ctx) for block in self.blocks])
+
     def forward(
         self, noisy_actions: torch.Tensor, timesteps: torch.Tensor, ctx: Context
     ) -> torch.Tensor:
@@ -316,7 +360,8 @@ class Denoiser(nn.Module):
         step = self.step_embedding(timesteps)[:, None, None, :]
         x = torch.cat([ctx.history, self.action_in(noisy_actions)], dim=2)
         x = x + self.position + ctx.agent[:, :, None, :] + step
-        for block in self.blocks:
-            x = block(x, ctx)
+        memory = ctx.memory or [None] * len(self.blocks)
+        for block, kept in zip(self.blocks, memory, strict=True):
+            x = block(x, ctx, kept)
         Hh = ctx.history.shape[2]
         return self.head(self.norm_out(x[:, :, Hh:]))

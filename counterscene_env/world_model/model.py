@@ -416,7 +416,7 @@ class WorldModel(nn.Module):
         B, K = valid.shape
         device = valid.device
         with torch.no_grad():
-            ctx = self.context(batch).repeat(num_samples)
+            ctx = self.denoiser.remember(self.context(batch).repeat(num_samples))
         state = self.current_state(batch).repeat_interleave(num_samples, 0)
 
         step_size = c.map_guidance if map_guidance is None else map_guidance
