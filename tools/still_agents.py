@@ -3,7 +3,8 @@
 An agent is *still* in a window when it is under 0.5 m/s at "now" and its logged position 3 s
 later is within 0.1 m of where it is (``evaluate-model``'s "still" agents). For each, one
 sample of the model's plan: how far it moves in 3 s and its accelerations. The split tells a
-creep (every still car drifts a little) from a decision (a few are sent off):
+creep (every still car drifts a little) from a decision (a few are sent off), and the share
+of all cars stopped now that drive off tells whether that decision is calibrated:
 
     python tools/still_agents.py scenarionet:path/to/nuscenes_mini_scenarionet [--model DIR]
 """
@@ -42,7 +43,7 @@ def main() -> None:
         if t + 1 < s.num_steps
     ]
     g = torch.Generator().manual_seed(args.seed)
-    accel, moved = [], []
+    accel, moved, stopped = [], [], []
     for lo in range(0, len(jobs), 8):
         items = [ds.window(k, t) for k, t in jobs[lo : lo + 8]]
         batch = default_collate(
@@ -59,10 +60,14 @@ def main() -> None:
                     continue
                 if not ok[b, k, HORIZON - 1]:
                     continue
-                if np.linalg.norm(future[b, k, HORIZON - 1, :2] - here) >= STILL_DISPLACEMENT:
+                end = pred.trajectory[b, 0, k, HORIZON - 1, :2].numpy()
+                logged = float(np.linalg.norm(future[b, k, HORIZON - 1, :2] - here))
+                stopped.append(
+                    (logged > DRIVES_OFF, float(np.linalg.norm(end - here)) > DRIVES_OFF)
+                )
+                if logged >= STILL_DISPLACEMENT:
                     continue
                 accel.append(pred.actions[b, 0, k, :HORIZON, 0].numpy())
-                end = pred.trajectory[b, 0, k, HORIZON - 1, :2].numpy()
                 moved.append(float(np.linalg.norm(end - here)))
     if not moved:
         raise SystemExit("no still agents in this source")
@@ -71,6 +76,11 @@ def main() -> None:
     print(f"still agent-windows: {len(d)}")
     print(f"moved in 3 s: mean {d.mean():.3f} m, median {np.median(d):.3f} m")
     print(f"accelerations: mean {a.mean():.3f} m/s^2, mean |a| {np.abs(a).mean():.3f} m/s^2")
+    went = np.array(stopped)  # [n, 2]: (the log went, the model went) per stopped agent
+    print(
+        f"of {len(went)} agent-windows stopped now (< {PARKED_SPEED} m/s), moved over "
+        f"{DRIVES_OFF} m in 3 s: log {went[:, 0].mean():.1%}, model {went[:, 1].mean():.1%}"
+    )
     print(
         f"sent off (> {DRIVES_OFF} m): {off.sum()} ({off.mean():.1%}), "
         f"{d[off].sum() / max(d.sum(), 1e-9):.0%} of the mean; "
