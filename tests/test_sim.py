@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 from conftest import make_scene
 
 from counterscene_env.sim import ClosedLoop, MotionSource, SimConfig
@@ -312,6 +313,38 @@ def test_a_warm_start_begins_from_the_previous_plan_shifted_to_now(model, genera
         steps = np.repeat(tokens[row], s, axis=0)  # per-step actions of the previous plan
         steps = np.concatenate([steps[shift:], np.repeat(steps[-1:], shift, axis=0)])
         np.testing.assert_allclose(init[k], steps.reshape(-1, s, 2).mean(1), rtol=1e-5)
+
+
+@pytest.mark.parametrize("warm_first", [False, True])
+def test_the_first_replan_starts_from_noise_or_from_keeping_speed_and_course(
+    warm_first, model, generated, monkeypatch
+):
+    """``warm_first_replan``: an episode's first replan runs only the warm start's last
+    denoising steps, from every agent's "keep speed and course" tokens (noised to that level);
+    off, it runs every step from pure noise. Either way the episode is deterministic."""
+    config = dataclasses.replace(SHORT, warm_start_steps=3, warm_first_replan=warm_first)
+    calls = []
+    sample = type(model).sample
+
+    def counting(self, batch, *args, **kwargs):
+        calls.append((kwargs.get("init"), kwargs.get("init_steps", 0)))
+        return sample(self, batch, *args, **kwargs)
+
+    monkeypatch.setattr(type(model), "sample", counting)
+    loop = ClosedLoop(model, config)
+    loop.reset([generated["intersection"]], [0])
+    loop.step(np.zeros((1, 2)))  # the first replan
+    ((init, steps),) = calls
+    if warm_first:
+        assert steps == 3
+        still = torch.from_numpy(loop.replanner.still).expand_as(init)
+        assert torch.equal(init, still)
+    else:
+        assert init is None
+    monkeypatch.undo()
+    a, _ = run(model, [generated["intersection"]], [4], config)
+    b, _ = run(model, [generated["intersection"]], [4], config)
+    assert np.array_equal(a.scene(0).positions, b.scene(0).positions)
 
 
 def test_warm_started_episodes_are_deterministic_and_differ_from_cold_ones(model, generated):

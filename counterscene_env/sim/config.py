@@ -53,6 +53,10 @@ class SimConfig:
             replan, each window starts from the previous plan shifted to "now", noised to the
             level of the sampler's last ``warm_start_steps`` steps, and only those are run
             (docs/performance.md, "Warm start"); 0: every replan samples from pure noise.
+        warm_first_replan: an episode's first replan starts warm too, from every agent's
+            "keep speed and course" plan (what a warm replan gives an agent it has not planned
+            before), instead of from pure noise with every denoising step. Needs
+            ``warm_start_steps > 0``.
         realism_weight: weight of the realism cost (agents overlapping or off their lanes,
             sim/realism.py) in the choice among samples; 0: guidance loss only.
         cover_radius: an agent is planned from a model window only if it is within this many
@@ -87,6 +91,7 @@ class SimConfig:
     map_guidance: float | None = bounded(None, ge=0)
     lane_steering: int | None = bounded(10, ge=0)
     warm_start_steps: int = bounded(3, ge=0)
+    warm_first_replan: bool = False
     realism_weight: float = bounded(1.0, ge=0)
     cover_radius: float = bounded(25.0, gt=0)
     max_windows: int = bounded(1, ge=1)

@@ -199,12 +199,16 @@ class Replanner:
             for window in self.windows(ep, sim):
                 owner.append(i)
                 windows.append(window)
-        # A warm start needs a previous prediction: episodes at their first replan sample
-        # from pure noise, in a call of their own. Windows are also grouped by the agent
-        # slots they fill, and each call's agent axis is cut to that (``collate(trim=True)``):
-        # padding costs as much as a real agent, and a matrix product's rounding depends on
-        # the sizes, so an episode's result never depends on which others share its call.
-        warm = [self.config.warm_start_steps > 0 and eps[o].replans > 0 for o in owner]
+        # A warm start reads the previous prediction: episodes at their first replan sample
+        # from pure noise, in a call of their own, unless ``warm_first_replan`` starts them
+        # from "keep speed and course". Windows are also grouped by the agent slots they
+        # fill, and each call's agent axis is cut to that (``collate(trim=True)``): padding
+        # costs as much as a real agent, and a matrix product's rounding depends on the
+        # sizes, so an episode's result never depends on which others share its call.
+        c = self.config
+        warm = [
+            c.warm_start_steps > 0 and (eps[o].replans > 0 or c.warm_first_replan) for o in owner
+        ]
         keys = [(w, agent_count(window.arrays)) for w, window in zip(warm, windows, strict=True)]
         chosen: dict[int, tuple] = {}
         for key in sorted(set(keys)):
