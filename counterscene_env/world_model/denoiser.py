@@ -57,6 +57,8 @@ class Context:
         local_tokens: ``[B, K, Ml + 1, d]`` each agent's agent-centric lane tokens and the "no
             map" token (None without ``local_lanes``).
         local_bias: ``[B, K, 1, 1, Ml + 1]`` additive key mask of the agent-centric map.
+        memory: every block's map keys and values (``Denoiser.remember``), or None to project
+            them in each forward pass; ``cut_agents`` and ``repeat`` drop it.
     """
 
     history: torch.Tensor
