@@ -56,7 +56,8 @@ class SimConfig:
         warm_first_replan: an episode's first replan starts warm too, from every agent's
             "keep speed and course" plan (what a warm replan gives an agent it has not planned
             before), instead of from pure noise with every denoising step. Needs
-            ``warm_start_steps > 0``.
+            ``warm_start_steps > 0``. Off: 6 % faster episodes for four times the off-road
+            rate on development episodes (inside the noise; docs/performance.md).
         realism_weight: weight of the realism cost (agents overlapping or off their lanes,
             sim/realism.py) in the choice among samples; 0: guidance loss only.
         cover_radius: an agent is planned from a model window only if it is within this many
