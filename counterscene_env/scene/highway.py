@@ -49,7 +49,11 @@ from highway_env.vehicle.behavior import IDMVehicle
 from counterscene_env.config import Scenario
 from counterscene_env.geometry import overlaps_over_time, wrap_angle
 from counterscene_env.scene.core import DEFAULT_DT, Scene
-from counterscene_env.scene.highway_vehicle import ForwardIDMVehicle
+from counterscene_env.scene.highway_vehicle import (
+    ForwardIDMVehicle,
+    defer_lane_updates,
+    update_lanes,
+)
 from counterscene_env.scene.road import RoadMap
 
 SCENARIOS = Scenario.values()
@@ -235,6 +239,7 @@ class _Traffic:
         self.rng = env.np_random
         self.time = 0.0
         self.next_spawn = 1.0
+        defer_lane_updates(self.road)
 
     def setup(self):
         """Replace controlled vehicles by IDM/MOBIL ones, add traffic; return the ego vehicle."""
@@ -258,6 +263,7 @@ class _Traffic:
     def step(self, dt: float) -> None:
         self.road.act()
         self.road.step(dt)
+        update_lanes(self.road)  # every vehicle's lane after its move, in one pass
         self.time += dt
         self._remove_finished()
         if self.time + 1e-9 >= self.next_spawn:

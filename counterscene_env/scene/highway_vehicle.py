@@ -16,6 +16,9 @@ highway-env's IDM/MOBIL vehicle with two changes, neither of which alters what i
      box (plus heading difference) is farther than the vehicle's current lane cannot be the
      closest. The remaining lanes are searched with
      highway-env's own function in the network's order, so ties go as they always did.
+     During a recording the updates of a frame wait until every vehicle has moved
+     (:func:`defer_lane_updates`), and the boxes' bounds for all of them are one array
+     operation (:func:`update_lanes`).
   2. **Constant-speed predictions.** ``RegulatedRoad.enforce_road_rules`` predicts both
      vehicles of every pair along their routes, so each vehicle ``n - 1`` times per call
      with the same state; the prediction is kept until the vehicle's state changes.
@@ -43,14 +46,22 @@ class ForwardIDMVehicle(IDMVehicle):
         self.speed = max(self.speed, 0.0)
 
     def on_state_update(self) -> None:
-        """highway-env's update (closest lane, history), with the pruned lane search."""
+        """highway-env's update (closest lane, history), with the pruned lane search; on a
+        road that ``defer_lane_updates`` marks, put off to ``update_lanes``."""
         if self.road:
+            pending = _PENDING.get(self.road)
+            if pending is not None:
+                pending.append(self)
+                return
             self.lane_index = closest_lane_index(
                 self.road.network, self.position, self.heading, self.lane_index
             )
-            self.lane = self.road.network.get_lane(self.lane_index)
-            if self.road.record_history:
-                self.history.appendleft(self.create_from(self))
+            self._lane_updated()
+
+    def _lane_updated(self) -> None:
+        self.lane = self.road.network.get_lane(self.lane_index)
+        if self.road.record_history:
+            self.history.appendleft(self.create_from(self))
 
     def predict_trajectory_constant_speed(
         self, times: np.ndarray
@@ -119,6 +130,39 @@ def _fixed_heading(lane) -> float:
 #: Lane boxes per road network, built on first use; dropped with the network.
 _BOXES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
+#: Roads whose vehicles' lane updates wait for ``update_lanes`` (``defer_lane_updates``).
+_PENDING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def defer_lane_updates(road) -> None:
+    """From now on, a :class:`ForwardIDMVehicle` on ``road`` that has moved leaves its lane
+    update to :func:`update_lanes`, which does every vehicle's of a frame at once.
+
+    ``Road.step`` moves every vehicle (each then updates its lane) and checks collisions,
+    which read no lanes; nothing reads a lane until the next frame's ``Road.act``. So the
+    updates may wait until all vehicles have moved, and the lane boxes' part of the search
+    is then one array operation for the frame instead of one per vehicle (docs/performance.md).
+    """
+    _PENDING.setdefault(road, [])
+
+
+def update_lanes(road) -> None:
+    """The lane updates put off since the last call (:func:`defer_lane_updates`): each
+    vehicle's ``closest_lane_index`` from the lane it was on, the same result as when it
+    moved."""
+    pending = _PENDING.get(road)
+    if not pending:
+        return
+    network = road.network
+    boxes = _lane_boxes(network)
+    position = np.array([v.position for v in pending], dtype=float).reshape(-1, 2)
+    heading = np.array([v.heading for v in pending], dtype=float)
+    gaps = _box_gaps(boxes, position, heading)  # [V, L]
+    for v, gap in zip(pending, gaps, strict=True):
+        v.lane_index = _search(network, boxes, v.position, v.heading, v.lane_index, gap)
+        v._lane_updated()
+    pending.clear()
+
 
 def closest_lane_index(
     network: RoadNetwork,
@@ -132,21 +176,39 @@ def closest_lane_index(
     ``position`` ``[2]`` m, ``heading`` rad. The lane boxes are built once per network and
     rebuilt when its lane count changes: a network is not edited otherwise once vehicles
     drive on it (highway-env builds it at reset)."""
+    boxes = _lane_boxes(network)
+    gap = _box_gaps(boxes, np.asarray(position, dtype=float)[None], np.array([heading]))[0]
+    return _search(network, boxes, position, heading, current, gap)
+
+
+def _lane_boxes(network) -> _LaneBoxes:
     boxes = _BOXES.get(network)
     if boxes is None or boxes.size != _lane_count(network):  # new, or a lane was added
         boxes = _BOXES[network] = _LaneBoxes(network)
+    return boxes
+
+
+def _box_gaps(boxes: _LaneBoxes, position: np.ndarray, heading: np.ndarray) -> np.ndarray:
+    """``[V, L]`` lower bounds [m + rad] of ``distance_with_heading`` from each of ``V``
+    poses (``position [V, 2]`` m, ``heading [V]`` rad) to each lane: the distance to the
+    lane's box, plus the heading difference for a straight lane."""
+    b = boxes.boxes[None]  # [1, L, 4]
+    x, y = position[:, 0, None], position[:, 1, None]  # [V, 1]
+    gap = np.hypot(
+        np.maximum(np.maximum(b[..., 0] - x, x - b[..., 2]), 0.0),
+        np.maximum(np.maximum(b[..., 1] - y, y - b[..., 3]), 0.0),
+    )
+    # A straight lane's heading term is known without its coordinates: it adds to the bound.
+    turn = np.abs((heading[:, None] - boxes.headings + np.pi) % (2 * np.pi) - np.pi)
+    return gap + np.where(np.isnan(turn), 0.0, turn)
+
+
+def _search(network, boxes: _LaneBoxes, position, heading, current, gap: np.ndarray) -> LaneIndex:
+    """The closest lane, given every lane's lower bound ``gap [L]`` (``_box_gaps``)."""
     if not isinstance(current, tuple) or current not in boxes.known:
         return network.get_closest_lane_index(position, heading)
     bound = network.get_lane(current).distance_with_heading(position, heading)
-    b = boxes.boxes
-    gap = np.hypot(
-        np.maximum(np.maximum(b[:, 0] - position[0], position[0] - b[:, 2]), 0.0),
-        np.maximum(np.maximum(b[:, 1] - position[1], position[1] - b[:, 3]), 0.0),
-    )
     best, best_index = np.inf, None
-    # A straight lane's heading term is known without its coordinates: it adds to the bound.
-    turn = np.abs((heading - boxes.headings + np.pi) % (2 * np.pi) - np.pi)
-    gap = gap + np.where(np.isnan(turn), 0.0, turn)
     # The slack keeps a lane that ties with the current one despite rounding in ``gap``.
     for k in np.flatnonzero(gap <= bound + 1e-9):  # in network order, as highway-env searches
         d = boxes.lanes[k].distance_with_heading(position, heading)
