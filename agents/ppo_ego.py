@@ -58,8 +58,8 @@ class Args:
     """highway-env action type: DiscreteMetaAction or ContinuousAction"""
     duration: float = 10.0
     """episode length [s]"""
-    num_samples: int = 4
-    """world-model samples per replan"""
+    num_samples: int = 0
+    """world-model samples per replan (0: the env's default, ``SimConfig.num_samples``)"""
     learning_rate: float = 5e-4
     n_steps: int = 16
     """rollout steps per env and update (16 envs x 16 = 256 steps per update)"""
@@ -96,7 +96,7 @@ def env_config(args: Args) -> dict:
         "guidance": args.guidance,
         "policy_frequency": args.policy_frequency,
         "duration": args.duration,
-        "num_samples": args.num_samples,
+        **({"num_samples": args.num_samples} if args.num_samples else {}),
         "action": action,
         "reward_speed_range": [4.0, 9.0],
     }
@@ -184,7 +184,8 @@ def evaluate(args: Args, path: Path, out: Path) -> dict:
     rows = {}
     for planner in (f"sb3:{path}", "idm"):
         for guidance in ("none", "full"):
-            sim = SimConfig(duration=args.duration, num_samples=args.num_samples, guidance=guidance)
+            samples = {"num_samples": args.num_samples} if args.num_samples else {}
+            sim = SimConfig(duration=args.duration, guidance=guidance, **samples)
             config = StressConfig(
                 scenario=args.eval_scenario or args.scenario,
                 episodes=args.eval_episodes,
