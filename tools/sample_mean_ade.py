@@ -14,12 +14,11 @@ import argparse
 
 import numpy as np
 import torch
-from torch.utils.data import default_collate
 
 from counterscene_env.scene.sources import stored_scenes
 from counterscene_env.world_model.checkpoint import load_model
 from counterscene_env.world_model.dataset import SceneWindowDataset
-from counterscene_env.world_model.evaluate import constant_velocity, start_steps
+from counterscene_env.world_model.evaluate import collate_windows, constant_velocity, window_jobs
 
 HORIZON = 30  # steps (3 s at 10 Hz)
 
@@ -35,19 +34,12 @@ def main() -> None:
     model = load_model(args.model).eval()
     scenes = list(stored_scenes(args.source))
     ds = SceneWindowDataset(scenes, model.window_config())
-    jobs = [
-        (k, t)
-        for k, s in enumerate(scenes)
-        for t in start_steps(s, model.config.history_steps, args.every, HORIZON)
-        if t + 1 < s.num_steps
-    ]
+    jobs = window_jobs(scenes, model.config.history_steps, args.every, HORIZON)
     g = torch.Generator().manual_seed(args.seed)
     rows: dict[str, list[float]] = {"one": [], "mean": [], "best": [], "cv": [], "spread": []}
     for lo in range(0, len(jobs), 8):
-        items = [ds.window(k, t) for k, t in jobs[lo : lo + 8]]
-        batch = default_collate(
-            [{key: torch.from_numpy(np.asarray(v)) for key, v in w.items()} for w in items]
-        )
+        part = jobs[lo : lo + 8]
+        batch = collate_windows(ds, part)
         with torch.no_grad():
             pred = model.sample(batch, args.samples, g)
             state = model.current_state(batch).numpy()
@@ -55,7 +47,7 @@ def main() -> None:
         future = batch["future"].numpy()[..., :HORIZON, :2]
         ok_all = batch["future_valid"].numpy()[..., :HORIZON]
         cv = constant_velocity(state, HORIZON, model.config.dt)  # [B, K, H, 2]
-        for b in range(len(items)):
+        for b in range(len(part)):
             for k in range(state.shape[1]):
                 ok = ok_all[b, k]
                 if not pred.valid[b, k] or not ok.any():

@@ -15,12 +15,16 @@ import argparse
 
 import numpy as np
 import torch
-from torch.utils.data import default_collate
 
 from counterscene_env.scene.sources import stored_scenes
 from counterscene_env.world_model.checkpoint import load_model
 from counterscene_env.world_model.dataset import SceneWindowDataset
-from counterscene_env.world_model.evaluate import PARKED_SPEED, STILL_DISPLACEMENT, start_steps
+from counterscene_env.world_model.evaluate import (
+    PARKED_SPEED,
+    STILL_DISPLACEMENT,
+    collate_windows,
+    window_jobs,
+)
 
 HORIZON = 30  # steps (3 s at 10 Hz)
 DRIVES_OFF = 0.5  # m in 3 s: a still car sent off, not drifting
@@ -36,24 +40,17 @@ def main() -> None:
     model = load_model(args.model).eval()
     scenes = list(stored_scenes(args.source))
     ds = SceneWindowDataset(scenes, model.window_config())
-    jobs = [
-        (k, t)
-        for k, s in enumerate(scenes)
-        for t in start_steps(s, model.config.history_steps, args.every, HORIZON)
-        if t + 1 < s.num_steps
-    ]
+    jobs = window_jobs(scenes, model.config.history_steps, args.every, HORIZON)
     g = torch.Generator().manual_seed(args.seed)
     accel, moved, stopped = [], [], []
     for lo in range(0, len(jobs), 8):
-        items = [ds.window(k, t) for k, t in jobs[lo : lo + 8]]
-        batch = default_collate(
-            [{key: torch.from_numpy(np.asarray(v)) for key, v in w.items()} for w in items]
-        )
+        part = jobs[lo : lo + 8]
+        batch = collate_windows(ds, part)
         with torch.no_grad():
             pred = model.sample(batch, 1, g)
             state = model.current_state(batch).numpy()  # [B, K, 4] x, y, course, speed
         future, ok = batch["future"].numpy(), batch["future_valid"].numpy()
-        for b in range(len(items)):
+        for b in range(len(part)):
             for k in range(state.shape[1]):
                 here = state[b, k, :2]
                 if not pred.valid[b, k] or abs(state[b, k, 3]) >= PARKED_SPEED:

@@ -160,6 +160,27 @@ def start_steps(scene: Scene, history_steps: int, every: int | None, future: int
     return [t for t in range(history_steps - 1, last + 1, every) if ego[t]]
 
 
+def window_jobs(
+    scenes: list[Scene], history_steps: int, every: int | None, future: int
+) -> list[tuple[int, int]]:
+    """``(scene row, now step)`` of every scored window (``start_steps``), scene by scene; a
+    log that ends at "now" has no future to score (and no frame to predict from to)."""
+    return [
+        (k, t)
+        for k, s in enumerate(scenes)
+        for t in start_steps(s, history_steps, every, future)
+        if t + 1 < s.num_steps
+    ]
+
+
+def collate_windows(ds: SceneWindowDataset, jobs: list[tuple[int, int]]) -> dict[str, torch.Tensor]:
+    """The windows ``jobs`` (``(scene row, now step)`` of ``ds``) as one batch."""
+    items = [ds.window(k, t) for k, t in jobs]
+    return default_collate(
+        [{key: torch.from_numpy(np.asarray(v)) for key, v in w.items()} for w in items]
+    )
+
+
 def evaluate_model(
     model: WorldModel,
     scenes: Iterable[Scene],
@@ -184,12 +205,11 @@ def evaluate_model(
     else:
         step = max(1, round(every / model.config.dt))
         need = round(MIN_SCORED_FUTURE / model.config.dt)
-    starts = [start_steps(s, hist, step, need) for s in given]
-    # A log that ends at "now" has no future to score (and no frame to predict from to).
-    starts = [[t for t in ts if t + 1 < s.num_steps] for s, ts in zip(given, starts, strict=True)]
-    keep = [i for i, ts in enumerate(starts) if ts]
+    jobs = window_jobs(given, hist, step, need)
+    keep = sorted({k for k, _ in jobs})  # scenes with a window to score
+    row = {i: r for r, i in enumerate(keep)}
     scenes = [given[i] for i in keep]
-    jobs = [(k, t) for k, i in enumerate(keep) for t in starts[i]]
+    jobs = [(row[k], t) for k, t in jobs]
     model = model.eval()
     ds = SceneWindowDataset(scenes, model.window_config())
     sums = _Sums()
@@ -202,10 +222,7 @@ def evaluate_model(
         bar = tqdm(total=len(jobs), desc="evaluate", unit="window", dynamic_ncols=True)
     for lo in range(0, len(jobs), chunk):
         part = jobs[lo : lo + chunk]
-        items = [ds.window(k, t) for k, t in part]
-        batch = default_collate(
-            [{key: torch.from_numpy(np.asarray(v)) for key, v in w.items()} for w in items]
-        )
+        batch = collate_windows(ds, part)
         roads = [scenes[k].road for k, _ in part]
         _score_chunk(model, batch, roads, [k for k, _ in part], num_samples, g, sums, agents)
         if bar is not None:
