@@ -181,15 +181,30 @@ def test_the_guided_step_lowers_the_counterfactual_loss(model, batch):
     assert (after < before).all()
 
 
-def test_no_adversary_or_no_noise_leaves_the_mean_alone(model, batch):
+def test_no_adversary_leaves_the_mean_alone(model, batch):
     S, K, Ta = 2, model.config.num_agents, model.config.action_tokens
     mean = torch.randn((S, K, Ta, 2), generator=torch.Generator().manual_seed(3))
     none = make_targets([None], [-1], np.zeros((1, 3)), [0], [0.8], GuidanceConfig())
-    assert torch.equal(
-        make_guidance_hook(model, batch, none, S, GuidanceConfig())(mean, 0.5, 50, mean), mean
-    )
-    hook = make_guidance_hook(model, batch, targets_for(batch, 5), S, GuidanceConfig())
-    assert torch.equal(hook(mean, 0.0, 0, mean), mean)  # the last step: sigma = 0
+    hook = make_guidance_hook(model, batch, none, S, GuidanceConfig())
+    assert torch.equal(hook(mean, 0.5, 50, mean), mean)
+    assert torch.equal(hook(mean, 0.0, 0, mean), mean)
+
+
+def test_the_final_step_moves_the_finished_adversary_plan_by_its_own_size(model, batch):
+    # The last denoising step adds no noise (sigma = 0): the paper's final-step guidance moves
+    # the adversary's rows of the finished sample by one unclipped step, and nobody else.
+    row, S, K, Ta = 5, 2, model.config.num_agents, model.config.action_tokens
+    mean = torch.randn((S, K, Ta, 2), generator=torch.Generator().manual_seed(3))
+    cfg = GuidanceConfig()
+    hook = make_guidance_hook(model, batch, targets_for(batch, row, cfg), S, cfg)
+    moved = (hook(mean, 0.0, 0, mean) - mean).abs()
+    assert torch.allclose(moved[:, row], torch.full_like(moved[:, row], cfg.final_step_size))
+    others = torch.ones(K, dtype=torch.bool)
+    others[row] = False
+    assert (moved[:, others] == 0).all()
+    off = GuidanceConfig(final_step_size=0.0)
+    hook = make_guidance_hook(model, batch, targets_for(batch, row, off), S, off)
+    assert torch.equal(hook(mean, 0.0, 0, mean), mean)  # off: the guidance ends before
 
 
 def test_conflict_point_is_moved_into_the_window_frame():

@@ -21,6 +21,11 @@ does nothing. The ego's predicted row is a reference only: its rows are detached
 The step is sign-like, as one Adam step of learning rate ``step_size`` from a fresh state
 (``lr * g / (|g| + eps)``, in normalised action units), clipped to +-sigma_t so guidance never
 moves a sample further than the noise of that step would (the public code does; docs/design.md).
+At the last step, which adds no noise, the paper's *final-step guidance* (its implementation
+table: Adam, lr 0.3, one step) moves the finished sample by one unclipped step of
+``final_step_size``. The clipped steps alone barely move the plan: the denoiser redraws what
+the early, noisy steps changed, and the late steps' sigma_t is small (docs/closed_loop.md,
+"Why the guidance did not bite harder").
 
 Shapes: N = scenes x samples, K window agents, Ta action tokens, F future steps.
 """
@@ -63,6 +68,12 @@ class GuidanceConfig:
         progress: what p measures: ``"rollout"`` (closed-loop step / horizon, the appendix and
             the public code) or ``"denoising"`` (the paper's main text).
         clip_scale: the step is clipped to +-``clip_scale`` sigma_t (our reference: 1).
+        final_step_size: the paper's final-step guidance (implementation table: Adam, lr 0.3,
+            1 step): at the last denoising step, which adds no noise and whose mean is the
+            finished sample, one sign-like step of this size, not clipped (sigma is 0
+            there); normalised action units. 0: none, the guidance ends at the last noisy
+            step (our reference before 25 Nov 2026; docs/closed_loop.md, "Why the guidance
+            did not bite harder").
         evaluate_on: where the loss gradient is taken: the posterior ``"mean"`` (ours) or
             the predicted clean actions ``"x0"``; the step goes to the mean either way.
     """
@@ -77,6 +88,7 @@ class GuidanceConfig:
     inner_steps: int = 1
     progress: str = "rollout"
     clip_scale: float = 1.0
+    final_step_size: float = 0.3
     evaluate_on: str = "mean"
 
     def __post_init__(self) -> None:
@@ -84,8 +96,9 @@ class GuidanceConfig:
             raise ValueError(f"progress must be 'rollout' or 'denoising', got {self.progress!r}")
         if self.inner_steps < 1:
             raise ValueError(f"inner_steps must be >= 1, got {self.inner_steps}")
-        if self.step_size < 0 or self.map_weight < 0 or self.clip_scale < 0:
-            raise ValueError("step_size, map_weight and clip_scale must be >= 0")
+        sizes = (self.step_size, self.map_weight, self.clip_scale, self.final_step_size)
+        if min(sizes) < 0:
+            raise ValueError("step_size, map_weight, clip_scale and final_step_size must be >= 0")
         if self.evaluate_on not in ("mean", "x0"):
             raise ValueError(f"evaluate_on must be 'mean' or 'x0', got {self.evaluate_on!r}")
 
@@ -351,26 +364,38 @@ def make_guidance_hook(
     K_train = model.config.num_train_timesteps
     dt = model.config.dt
 
+    def sign_step(x: torch.Tensor, size: float, p: torch.Tensor | None) -> torch.Tensor:
+        """``-size * g / (|g| + eps)`` on the adversary's rows, g the loss gradient at ``x``."""
+        with torch.enable_grad():
+            x = x.detach().requires_grad_(True)
+            # The gradient mask: every row but the adversary's is detached before the
+            # rollout, so the loss cannot move the ego or any other agent.
+            x_in = torch.where(mask, x, x.detach())
+            ego_path, adv_path = pair_paths(model, x_in, state, tg)
+            loss = guidance_loss(ego_path, adv_path, tg, config, dt, p, lanes, on_lane)
+            (grad,) = torch.autograd.grad(loss.sum(), x)
+        grad = torch.where(mask, grad, 0.0)
+        return -size * grad / (grad.abs() + ADAM_EPS)
+
     def hook(mean: torch.Tensor, sigma: float, t: int, x0: torch.Tensor) -> torch.Tensor:
-        limit = config.clip_scale * sigma
-        if limit <= 0 or not has.any():
-            return mean  # the last step adds no noise, so guidance would not be "within noise"
-        base = x0 if config.evaluate_on == "x0" else mean
+        if not has.any():
+            return mean
         p = None
         if config.progress == "denoising":
             p = torch.full((N,), 1.0 - t / K_train)
+        if sigma <= 0:
+            # The last step adds no noise: its mean is the finished sample. The paper's
+            # final-step guidance takes one step of its own size there, unclipped.
+            if config.final_step_size <= 0:
+                return mean
+            return mean + sign_step(mean, config.final_step_size, p)
+        limit = config.clip_scale * sigma
+        if limit <= 0:
+            return mean
+        base = x0 if config.evaluate_on == "x0" else mean
         delta = torch.zeros_like(mean)
         for _ in range(config.inner_steps):
-            with torch.enable_grad():
-                x = (base + delta).detach().requires_grad_(True)
-                # The gradient mask: every row but the adversary's is detached before the
-                # rollout, so the loss cannot move the ego or any other agent.
-                x_in = torch.where(mask, x, x.detach())
-                ego_path, adv_path = pair_paths(model, x_in, state, tg)
-                loss = guidance_loss(ego_path, adv_path, tg, config, dt, p, lanes, on_lane)
-                (grad,) = torch.autograd.grad(loss.sum(), x)
-            grad = torch.where(mask, grad, 0.0)
-            step = -config.step_size * grad / (grad.abs() + ADAM_EPS)
+            step = sign_step(base + delta, config.step_size, p)
             delta = (delta + step).clamp(-limit, limit)
         return mean + delta
 

@@ -42,6 +42,12 @@ class SimConfig:
             adversary selection"); off in the paper.
         guidance: a guidance preset: full, no_jerk, no_conflict_aware, no_progressive,
             no_adaptive, minimal, none.
+        final_step_guidance: the paper's final-step guidance (implementation table: one
+            step of lr 0.3 on the finished sample at the last denoising step, unclipped;
+            adversary/guidance.py). False: the guidance ends at the last noisy step, where
+            its steps are clipped to that step's noise and barely move the adversary (our
+            reference before 25 Nov 2026; docs/closed_loop.md, "Why the guidance did not
+            bite harder").
         sampler: the world model's sampler, ddim or ddpm (None: the model's default).
         sampling_steps: denoising steps of the strided sampler (None: the model's default).
         eta: noise scale of the strided sampler, 0 (DDIM) to 1 (DDPM posterior) (None: the
@@ -89,6 +95,7 @@ class SimConfig:
     selection_source: str = choice_field(SelectionSource, SelectionSource.LOG)
     strict_gates: bool = True
     guidance: str = choice_field(GuidancePreset, GuidancePreset.FULL)
+    final_step_guidance: bool = True
     sampler: str | None = choice_field(Sampler, None)
     sampling_steps: int | None = bounded(None, ge=1)
     eta: float | None = bounded(None, ge=0)

@@ -43,6 +43,7 @@ episodes share its batch; same seed and actions give the same episode on CPU.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 
@@ -89,6 +90,8 @@ class ClosedLoop:
         self.model = model.eval()
         self.config = config or SimConfig()
         self.guidance = guidance_preset(self.config.guidance)
+        if not self.config.final_step_guidance:
+            self.guidance = dataclasses.replace(self.guidance, final_step_size=0.0)
         self.replanner = Replanner(self.model, self.config, self.guidance)
         #: The episodes of the current batch (public records, read-only outside ``sim/``).
         self.episodes: list[Episode] = []
