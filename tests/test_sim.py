@@ -255,6 +255,30 @@ def test_traffic_yields_to_the_ego_but_a_guided_adversary_does_not(model, guidan
         assert not held and gap < 4.0
 
 
+@pytest.mark.parametrize("guidance", ["none", "full"])
+def test_the_final_guidance_step_moves_only_a_guided_adversary(model, guidance):
+    def adversary_path(final):
+        config = SimConfig(
+            duration=5.0,
+            num_samples=2,
+            strict_gates=False,
+            guidance=guidance,
+            final_step_guidance=final,
+        )
+        loop = ClosedLoop(model, config)
+        assert loop.guidance.final_step_size == (0.3 if final else 0.0)
+        assert loop.reset([rear_scene()], [0])[0]["adversary"] == "a1"
+        while not loop.done.all():
+            loop.step(np.zeros((1, 2)))
+        return loop.scene(0).positions[1, 31:]
+
+    with_step, without = adversary_path(True), adversary_path(False)
+    if guidance == "none":  # nothing to guide: the switch changes nothing
+        assert np.array_equal(with_step, without)
+    else:
+        assert not np.allclose(with_step, without, atol=1e-3)
+
+
 def platoon_scene(T=90, c=30):
     """:func:`rear_scene` with a third car at 3 m/s from x = 45, between the follower (row 1,
     the adversary) and the ego (row 0): the follower cannot reach the ego without hitting it."""
