@@ -17,8 +17,7 @@ import torch
 
 from counterscene_env.scene.sources import stored_scenes
 from counterscene_env.world_model.checkpoint import load_model
-from counterscene_env.world_model.dataset import SceneWindowDataset
-from counterscene_env.world_model.evaluate import collate_windows, constant_velocity, window_jobs
+from counterscene_env.world_model.evaluate import constant_velocity, window_batches, window_jobs
 
 HORIZON = 30  # steps (3 s at 10 Hz)
 
@@ -33,13 +32,10 @@ def main() -> None:
     args = ap.parse_args()
     model = load_model(args.model).eval()
     scenes = list(stored_scenes(args.source))
-    ds = SceneWindowDataset(scenes, model.window_config())
     jobs = window_jobs(scenes, model.config.history_steps, args.every, HORIZON)
     g = torch.Generator().manual_seed(args.seed)
     rows: dict[str, list[float]] = {"one": [], "mean": [], "best": [], "cv": [], "spread": []}
-    for lo in range(0, len(jobs), 8):
-        part = jobs[lo : lo + 8]
-        batch = collate_windows(ds, part)
+    for part, batch in window_batches(model, scenes, jobs):
         with torch.no_grad():
             pred = model.sample(batch, args.samples, g)
             state = model.current_state(batch).numpy()

@@ -18,11 +18,10 @@ import torch
 
 from counterscene_env.scene.sources import stored_scenes
 from counterscene_env.world_model.checkpoint import load_model
-from counterscene_env.world_model.dataset import SceneWindowDataset
 from counterscene_env.world_model.evaluate import (
     PARKED_SPEED,
     STILL_DISPLACEMENT,
-    collate_windows,
+    window_batches,
     window_jobs,
 )
 
@@ -39,13 +38,10 @@ def main() -> None:
     args = ap.parse_args()
     model = load_model(args.model).eval()
     scenes = list(stored_scenes(args.source))
-    ds = SceneWindowDataset(scenes, model.window_config())
     jobs = window_jobs(scenes, model.config.history_steps, args.every, HORIZON)
     g = torch.Generator().manual_seed(args.seed)
     accel, moved, stopped = [], [], []
-    for lo in range(0, len(jobs), 8):
-        part = jobs[lo : lo + 8]
-        batch = collate_windows(ds, part)
+    for part, batch in window_batches(model, scenes, jobs):
         with torch.no_grad():
             pred = model.sample(batch, 1, g)
             state = model.current_state(batch).numpy()  # [B, K, 4] x, y, course, speed

@@ -41,7 +41,7 @@ the scenes scored); so is, with ``every``, a log too short for any start time.
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from typing import Any
 
 import numpy as np
@@ -173,12 +173,21 @@ def window_jobs(
     ]
 
 
-def collate_windows(ds: SceneWindowDataset, jobs: list[tuple[int, int]]) -> dict[str, torch.Tensor]:
-    """The windows ``jobs`` (``(scene row, now step)`` of ``ds``) as one batch."""
-    items = [ds.window(k, t) for k, t in jobs]
-    return default_collate(
-        [{key: torch.from_numpy(np.asarray(v)) for key, v in w.items()} for w in items]
-    )
+def window_batches(
+    model: WorldModel, scenes: list[Scene], jobs: list[tuple[int, int]], chunk: int = 8
+) -> Iterator[tuple[list[tuple[int, int]], dict[str, torch.Tensor]]]:
+    """The windows ``jobs`` (``(scene row, now step)`` of ``scenes``, in ``model``'s window
+    layout), ``chunk`` at a time: ``(the chunk's jobs, their batch)``."""
+    ds = SceneWindowDataset(scenes, model.window_config())
+    for lo in range(0, len(jobs), chunk):
+        part = jobs[lo : lo + chunk]
+        items = [ds.window(k, t) for k, t in part]
+        yield (
+            part,
+            default_collate(
+                [{key: torch.from_numpy(np.asarray(v)) for key, v in w.items()} for w in items]
+            ),
+        )
 
 
 def evaluate_model(
@@ -211,7 +220,6 @@ def evaluate_model(
     scenes = [given[i] for i in keep]
     jobs = [(row[k], t) for k, t in jobs]
     model = model.eval()
-    ds = SceneWindowDataset(scenes, model.window_config())
     sums = _Sums()
     agents = defaultdict(int)
     g = torch.Generator().manual_seed(seed)
@@ -220,9 +228,7 @@ def evaluate_model(
         from tqdm import tqdm
 
         bar = tqdm(total=len(jobs), desc="evaluate", unit="window", dynamic_ncols=True)
-    for lo in range(0, len(jobs), chunk):
-        part = jobs[lo : lo + chunk]
-        batch = collate_windows(ds, part)
+    for part, batch in window_batches(model, scenes, jobs, chunk):
         roads = [scenes[k].road for k, _ in part]
         _score_chunk(model, batch, roads, [k for k, _ in part], num_samples, g, sums, agents)
         if bar is not None:
