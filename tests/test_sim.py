@@ -10,6 +10,7 @@ import pytest
 import torch
 from conftest import make_scene
 
+from counterscene_env import geometry
 from counterscene_env.sim import ClosedLoop, MotionSource, SimConfig
 from counterscene_env.world_model.checkpoint import load_model
 from counterscene_env.world_model.window import make_window
@@ -64,6 +65,42 @@ def test_history_is_the_log_and_validity_follows_it(model, generated):
     moved = sim.valid[others, c + 1 :] & scene.valid[others, c + 1 : sim.num_steps]
     diff = sim.positions[others, c + 1 :] - scene.positions[others, c + 1 : sim.num_steps]
     assert np.abs(diff[moved]).max() > 0.01
+
+
+def test_an_agent_entering_on_top_of_the_ego_waits_until_its_place_is_clear(model):
+    # The log: the ego drives east at 10 m/s from x = 50; row 1 appears 2 s later at x = 58,
+    # 12 m behind where the logged ego is by then, and follows at 10 m/s. The simulated ego
+    # brakes to a stop near x = 60, so row 1's logged entry lands on it.
+    c, T = 30, 90
+    t = np.arange(T) * 0.1 - c * 0.1
+    ego = np.stack([50 + 10.0 * t, np.zeros(T)], -1)
+    late = np.stack([58 + 10.0 * (t - 2.0), np.zeros(T)], -1)
+    valid = np.ones((2, T), bool)
+    valid[1, : c + 20] = False
+    speeds = np.array([np.full(T, 10.0), np.full(T, 10.0)])
+    scene = make_scene(np.stack([ego, late]), speeds=speeds, valid=valid, current_index=c)
+    loop = ClosedLoop(model, SimConfig(duration=4.0, num_samples=2))
+    loop.reset([scene], [0])
+    infos = []
+    while not loop.done.all():
+        infos.append(loop.step(np.array([[-5.0, 0.0]])))
+    sim = loop.scene(0)
+    entry = c + 20
+    assert geometry.boxes_overlap(  # where the log would put it, the ego stands
+        scene.positions[1, entry],
+        0.0,
+        scene.extents[1],
+        sim.positions[0, entry],
+        0.0,
+        scene.extents[0],
+    )
+    assert not any(i[0]["collision"] for i in infos)
+    first = int(np.flatnonzero(sim.valid[1])[0])
+    assert first > entry  # it waited...
+    assert np.array_equal(
+        sim.positions[1, first], scene.positions[1, first]
+    )  # ...then came in as logged
+    assert (loop.motion_source(0)[1, entry:first] == MotionSource.NONE).all()
 
 
 def test_ego_follows_its_actions_through_the_bicycle_model(model, generated):

@@ -20,7 +20,10 @@ Per source (``NAME=DIR``; ``--scenarionet`` and ``--commonroad`` repeat):
 - ``--closed-loop K``: the unguided closed loop (``guidance="none"``, log-replay ego, the
   shipped model unless ``--model``) on the first K scenes: the simulated vehicles' ORR (all;
   moving), vehicle-vehicle collisions between non-ego vehicles that the log itself does not
-  have over the same steps (a pair overlapping in the log is not new), and the episodes whose
+  have over the same steps (a pair overlapping in the log is not new), each named by how
+  its two vehicles moved into their first overlapping step (``PLAN``: the model's plan;
+  ``LOG``, ``IDM``, ``COAST``: the fallback movers the network does not drive; ``YIELD``,
+  ``KEEP``: a reflex changed the step), and the episodes whose
   selection (on the factual future, as the closed loop makes it) found an adversary;
   ``--network-alone`` runs the same with the reflexes off (no yielding, no road keeping) and
   no final-step lane keeping: what the world model itself does. ``--min-seconds S`` keeps
@@ -126,16 +129,26 @@ def selection_gates(scene: Scene) -> dict:
     }
 
 
-def new_vehicle_collisions(sim: Scene, factual: Scene) -> int:
+def new_vehicle_collisions(sim: Scene, factual: Scene, source: np.ndarray) -> list[str]:
     """Pairs of non-ego vehicles that overlap in ``sim``'s rollout but never in the log over
-    the same steps."""
-    from counterscene_env.metrics.safety import agent_overlaps
+    the same steps, each named by how the two moved into their first overlapping step
+    (``source`` ``[N, T]``: ``ClosedLoop.motion_source``), e.g. ``"PLAN-PLAN"`` (both on
+    the model's plans: the network's own collision) or ``"IDM-LOG"`` (neither)."""
+    from counterscene_env.metrics.safety import agent_overlaps, rollout_slice
+    from counterscene_env.sim import MotionSource
 
     veh = sim.vehicle_mask.copy()
     veh[sim.ego_index] = False
-    sim_pairs = agent_overlaps(sim)[:, veh][:, :, veh].any(0)
-    log_pairs = agent_overlaps(factual)[:, veh][:, :, veh].any(0)
-    return int(np.triu(sim_pairs & ~log_pairs, 1).sum())
+    sim_overlaps = agent_overlaps(sim) & veh[None, :, None] & veh[None, None, :]
+    log_pairs = agent_overlaps(factual).any(0)
+    new = np.triu(sim_overlaps.any(0) & ~log_pairs, 1)
+    rolled = source[:, rollout_slice(sim)]
+    kinds = []
+    for a, b in zip(*np.nonzero(new), strict=True):
+        t = int(np.argmax(sim_overlaps[:, a, b]))
+        names = sorted(MotionSource(int(rolled[r, t])).name for r in (a, b))
+        kinds.append("-".join(names))
+    return kinds
 
 
 def closed_loop(scenes: list[Scene], model_dir: str, network_alone: bool = False) -> dict:
@@ -154,12 +167,14 @@ def closed_loop(scenes: list[Scene], model_dir: str, network_alone: bool = False
         rec = run_batch(loop, [scene], [i], [make_planner("log")])[0]
         sim = loop.scene(0)
         factual = scene.time_slice(0, sim.num_steps)
+        pairs = new_vehicle_collisions(sim, factual, loop.motion_source(0))
         rows.append(
             {
                 "scenario_id": scene.scenario_id,
                 "orr": rec["orr"],
                 "orr_moving": rec["orr_moving"],
-                "new_vehicle_collisions": new_vehicle_collisions(sim, factual),
+                "new_vehicle_collisions": len(pairs),
+                "new_collision_movers": pairs,
                 "adversary": rec["adversary_id"] is not None,
                 "fallback": rec["fallback"],
                 "rollout_s": rec["rollout_s"],
@@ -175,6 +190,15 @@ def closed_loop(scenes: list[Scene], model_dir: str, network_alone: bool = False
             sum(r["new_vehicle_collisions"] > 0 for r in rows), n
         ),
         "episodes_with_adversary": rate(sum(r["adversary"] for r in rows), n),
+        # Who was moving whom: PLAN-PLAN pairs are the network's own; pairs without PLAN are
+        # between the fallback movers (log replay, IDM, coasting), which the network does not
+        # drive.
+        "new_collision_movers": dict(
+            Counter(k for r in rows for k in r["new_collision_movers"]).most_common()
+        ),
+        "episodes_with_new_collision_involving_a_plan": rate(
+            sum(any("PLAN" in k for k in r["new_collision_movers"]) for r in rows), n
+        ),
         "per_episode": rows,
         "timing": {"seconds": time.perf_counter() - start},
     }
@@ -309,14 +333,17 @@ def markdown(results: list[dict]) -> str:
         lines += [
             "",
             "| source | closed-loop episodes | vehicle ORR (mean) | moving-vehicle ORR (mean) | "
-            "episodes with a new vehicle-vehicle collision | episodes with an adversary |",
-            "|---|---|---|---|---|---|",
+            "episodes with a new vehicle-vehicle collision | of which one involves a plan | "
+            "new collisions by movers | episodes with an adversary |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         for r in loops:
             c = r["closed_loop"]
             lines.append(
                 f"| {r['source']} | {c['episodes']} | {c['orr_mean']:.4f} | "
                 f"{c['orr_moving_mean']:.4f} | {pct(c['episodes_with_new_vehicle_collision'])} | "
+                f"{pct(c['episodes_with_new_collision_involving_a_plan'])} | "
+                f"{', '.join(f'{k} {v}' for k, v in c['new_collision_movers'].items()) or '-'} | "
                 f"{pct(c['episodes_with_adversary'])} |"
             )
     return "\n".join(lines) + "\n"

@@ -20,8 +20,9 @@ world-model call (scenes are windows of a common agent count K, padded). Per epi
   step the adversary's rows alone are nudged by the guidance; the sample with the lowest
   guidance loss of ``num_samples`` is kept. The ego's predicted row is only the guidance's
   reference: the ego follows its policy.
-- **Who moves how.** An agent exists at a step exactly when the log says so (agents leave and
-  enter as recorded). An agent in the model's window follows its current plan; one that was
+- **Who moves how.** An agent exists at a step when the log says so (agents leave and enter
+  as recorded; one that would enter on top of another waits until its logged pose is clear,
+  ``sim/motion.py``). An agent in the model's window follows its current plan; one that was
   never planned (outside the window: beyond ``agent_radius`` or the K nearest) replays the
   log, and so does one that just entered; one the model planned before but no longer sees
   continues as a highway-env IDM lane follower (its stale open-loop plan would drift off the

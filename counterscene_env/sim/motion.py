@@ -1,6 +1,8 @@
 """Motion: how every agent moves into the next step (docs/design.md, "Who moves how").
 
-An agent exists at a step exactly when the log says so. Each step, in this order:
+An agent exists at a step when the log says so, with one exception: an agent that would
+enter (appear in the log) where another agent's box already is waits outside the scene until
+its logged pose is clear (:func:`_hold_entries`). Each step, in this order:
 
 - an agent in a model window follows its current plan (``MotionSource.PLAN``); one that was
   never planned, or just entered, replays its log (``LOG``); one handed to the IDM lane
@@ -91,18 +93,65 @@ def advance(
     ep.source[kept, t1] = MotionSource.KEEP
     ep.source[egos, t1] = MotionSource.EGO
 
-    # The egos: the policy's action through highway-env's bicycle, or a written state.
-    for k, (e, v, state) in enumerate(zip(egos, ep.vehicles, states, strict=True)):
+    _move_egos(ep, actions, states)
+    entering = entered.copy()
+    entering[egos] = False
+    ep.source[_hold_entries(ep, entering), t1] = MotionSource.NONE
+    ep.t = t1
+
+
+def _move_egos(ep: Episode, actions: np.ndarray | None, states: list[np.ndarray | None]) -> None:
+    """The egos into step ``t + 1``: the policy's action through highway-env's bicycle, or a
+    written state."""
+    t1, dt = ep.t + 1, ep.factual.dt
+    for k, (e, v, state) in enumerate(zip(ep.egos, ep.vehicles, states, strict=True)):
         if state is not None:
             v.position = np.array(state[:2], dtype=np.float64)
             v.heading, v.speed = float(state[2]), float(state[3])
         else:
             v.act({"acceleration": float(actions[k, 0]), "steering": float(actions[k, 1])})
-            v.step(log.dt)
+            v.step(dt)
         ep.positions[e, t1] = v.position
         ep.yaws[e, t1] = v.heading
         ep.speeds[e, t1] = v.speed
-    ep.t = t1
+
+
+def _hold_entries(ep: Episode, entering: np.ndarray) -> list[int]:
+    """Keep out of step ``t + 1`` the ``entering`` ``[N]`` agents whose logged pose there
+    overlaps another agent's box (docs/closed_loop.md, "Who moves how"); returns their rows.
+
+    A log's agents enter where the log saw them first: at the edge of a recording or of a
+    sensor's range. Another car in the simulation may be there by then (one that drove slower
+    than its log), and appearing on top of it is an artefact of replaying the log, not a
+    collision anyone drove into. Like highway-env's spawner, which does not place a car near
+    another, such an agent waits: it is absent at this step and tries again at the next, at
+    its logged pose then. It runs after everyone has moved, the egos too, so it checks the
+    boxes the step's collisions are scored on; entering agents are checked in row order, each
+    against those let in before it.
+    """
+    t1 = ep.t + 1
+    rows = np.flatnonzero(entering)
+    if not rows.size:
+        return []
+    extents = ep.factual.extents
+    occupied = ep.valid[:, t1].copy()
+    occupied[rows] = False
+    held = []
+    for r in rows:
+        others = np.flatnonzero(occupied)
+        if geometry.boxes_overlap(
+            ep.positions[r, t1],
+            ep.yaws[r, t1],
+            extents[r],
+            ep.positions[others, t1],
+            ep.yaws[others, t1],
+            extents[others],
+        ).any():
+            ep.valid[r, t1] = False
+            held.append(int(r))
+        else:
+            occupied[r] = True
+    return held
 
 
 def _yield(

@@ -68,7 +68,8 @@ class Episode:
         t: the current absolute step.
         positions: ``[N, T, 2]`` m, the simulated states (the log's history before ``start``);
             yaws ``[N, T]`` rad; speeds ``[N, T]`` m/s.
-        valid: ``[N, T]`` bool, agents present at each simulated step (as the log says).
+        valid: ``[N, T]`` bool, agents present at each simulated step (as the log says, but
+            an agent that would enter on top of another waits: ``sim/motion.py``).
         source: ``[N, T]`` int8, how each agent moved into each step (:class:`MotionSource`).
         egos: rows driven by external policies; ``egos[0]`` is ``factual.ego_index``.
         vehicles: one highway-env bicycle per ego.
