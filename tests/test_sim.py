@@ -75,10 +75,15 @@ def test_an_agent_entering_on_top_of_the_ego_waits_until_its_place_is_clear(mode
     t = np.arange(T) * 0.1 - c * 0.1
     ego = np.stack([50 + 10.0 * t, np.zeros(T)], -1)
     late = np.stack([58 + 10.0 * (t - 2.0), np.zeros(T)], -1)
-    valid = np.ones((2, T), bool)
+    # Far off, two parked cars the log itself has overlapping, one of them entering then:
+    # an overlap of the log's own holds no one back.
+    parked, joins = np.tile([200.0, 4.0], (T, 1)), np.tile([202.0, 4.0], (T, 1))
+    valid = np.ones((4, T), bool)
     valid[1, : c + 20] = False
-    speeds = np.array([np.full(T, 10.0), np.full(T, 10.0)])
-    scene = make_scene(np.stack([ego, late]), speeds=speeds, valid=valid, current_index=c)
+    valid[3, : c + 20] = False
+    speeds = np.array([np.full(T, 10.0), np.full(T, 10.0), np.zeros(T), np.zeros(T)])
+    positions = np.stack([ego, late, parked, joins])
+    scene = make_scene(positions, speeds=speeds, valid=valid, current_index=c)
     loop = ClosedLoop(model, SimConfig(duration=4.0, num_samples=2))
     loop.reset([scene], [0])
     infos = []
@@ -101,6 +106,7 @@ def test_an_agent_entering_on_top_of_the_ego_waits_until_its_place_is_clear(mode
         sim.positions[1, first], scene.positions[1, first]
     )  # ...then came in as logged
     assert (loop.motion_source(0)[1, entry:first] == MotionSource.NONE).all()
+    assert np.array_equal(sim.valid[3], scene.valid[3, : sim.num_steps])
 
 
 def test_ego_follows_its_actions_through_the_bicycle_model(model, generated):

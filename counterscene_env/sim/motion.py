@@ -127,26 +127,38 @@ def _hold_entries(ep: Episode, entering: np.ndarray) -> list[int]:
     another, such an agent waits: it is absent at this step and tries again at the next, at
     its logged pose then. It runs after everyone has moved, the egos too, so it checks the
     boxes the step's collisions are scored on; entering agents are checked in row order, each
-    against those let in before it.
+    against those let in before it. A pair that overlaps in the log at that step too is the
+    log's own and holds no one back.
     """
     t1 = ep.t + 1
     rows = np.flatnonzero(entering)
     if not rows.size:
         return []
-    extents = ep.factual.extents
+    log = ep.factual
     occupied = ep.valid[:, t1].copy()
     occupied[rows] = False
     held = []
     for r in rows:
         others = np.flatnonzero(occupied)
-        if geometry.boxes_overlap(
+        now = geometry.boxes_overlap(
             ep.positions[r, t1],
             ep.yaws[r, t1],
-            extents[r],
+            log.extents[r],
             ep.positions[others, t1],
             ep.yaws[others, t1],
-            extents[others],
-        ).any():
+            log.extents[others],
+        )
+        # An overlap the log itself has (a group of pedestrians, a real log's annotations)
+        # is the log's, not the replay's: it does not hold the agent back.
+        logged = log.valid[others, t1] & geometry.boxes_overlap(
+            log.positions[r, t1],
+            log.yaws[r, t1],
+            log.extents[r],
+            log.positions[others, t1],
+            log.yaws[others, t1],
+            log.extents[others],
+        )
+        if (now & ~logged).any():
             ep.valid[r, t1] = False
             held.append(int(r))
         else:
