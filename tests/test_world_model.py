@@ -322,7 +322,7 @@ def test_epsilon_prediction_trains_and_samples(generated):
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
     before = [p.detach().clone() for p in model.parameters()]
     losses = model.loss(batch, torch.Generator().manual_seed(0))
-    assert set(losses) == {"loss", "action", "position", "yaw", "speed", "off_lane"}
+    assert set(losses) == {"loss", "action", "position", "yaw", "speed", "off_lane", "overlap"}
     assert all(torch.isfinite(v) for v in losses.values())
     opt.zero_grad()
     losses["loss"].backward()

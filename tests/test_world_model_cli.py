@@ -157,6 +157,10 @@ def test_evaluate_model_json(trained, dataset, capsys):
     assert cv["ade"]["1s"] <= cv["ade"]["full"]
     for h in hz:
         assert model["min_ade_6"][h] <= model["ade"][h] + 1e-9
+    # The share of windows whose sample overlaps two boxes only grows with the horizon.
+    overlap = result["sample_overlap"]
+    assert set(overlap) == hz and all(0.0 <= overlap[h] <= 1.0 for h in hz)
+    assert overlap["1s"] <= overlap["3s"] <= overlap["full"]
     # The tiny model samples with the preset's lane keeping; --lane-steering 0 turns it off
     # (the network alone), which changes the trajectories and so the errors.
     assert result["lane_steering"] == preset("default").lane_steering > 0
@@ -350,7 +354,22 @@ def test_init_may_change_which_lanes_the_window_holds(dataset, tmp_path):
     old = tmp_path / "old"
     assert _train(dataset, old, 2, "--set", "lane_anchors=ego", "--set", "num_lanes=32") == 0
     fine = tmp_path / "fine"
-    assert _train(dataset, fine, 2, "--init", str(old), "--lr", "0", "--off-lane-weight", "1") == 0
+    assert (
+        _train(
+            dataset,
+            fine,
+            2,
+            "--init",
+            str(old),
+            "--lr",
+            "0",
+            "--off-lane-weight",
+            "1",
+            "--overlap-weight",
+            "1",
+        )
+        == 0
+    )
     start, model = load_model(old), load_model(fine)
     assert (start.config.lane_anchors, start.config.num_lanes) == ("ego", 32)
     assert (model.config.lane_anchors, model.config.num_lanes) == ("agents", 48)
@@ -358,9 +377,10 @@ def test_init_may_change_which_lanes_the_window_holds(dataset, tmp_path):
         start.state_dict().items(), model.state_dict().items(), strict=True
     ):
         assert torch.equal(a, b), name
-    # The off-lane term is logged with the other losses.
+    # The off-lane and overlap terms are logged with the other losses.
     record = json.loads(_log(fine)[-1])
     assert math.isfinite(record["off_lane"]) and record["off_lane"] >= 0
+    assert math.isfinite(record["overlap"]) and record["overlap"] >= 0
 
 
 @pytest.mark.slow

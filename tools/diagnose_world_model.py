@@ -11,13 +11,17 @@ and valid 3 s later are scored; for each:
 - ``variants``: ADE over 0-3 s [m], the error 3 s ahead split along the agent's course now
   (``along_mean``, ``along_abs``) and across it (``cross_abs``), speed 3 s ahead [m/s] and the
   course change by then [deg], for the model (one sample, as configured), the network alone
-  (no final-step lane keeping), the network with no lane map at all, the log's own action
+  (no final-step lane keeping), the network with no lane map at all, the model with the
+  history's past speeds smoothed over 0.5 s ("now" kept: are jumpy real-log speeds what
+  misleads it?), the log's own action
   tokens rolled out through the model's unicycle (what the action space can express), and
-  constant velocity;
+  constant velocity; for each also the share of windows in which it puts two agents' boxes
+  on each other within 3 s where the log's do not (every agent of the window);
 - ``course``: constant velocity along the course now (a backward difference over 0.1 s),
   along the heading, and along the course over 0.5 s;
 - ``actions``: the logged action tokens [m/s^2, rad/s]: median and 90th percentile of their
-  size, and their mean and spread in the model's normalised units;
+  size, and their mean and spread in the model's normalised units; the same percentiles of
+  the history's frame-to-frame speed changes [m/s];
 - ``lanes``: lane segments within 30 m of a moving agent, segment lengths and widths, and the
   share of the agents' logged positions over 3 s more than 0.5 m outside every lane the
   model's window holds.
@@ -40,6 +44,7 @@ from counterscene_env.world_model import load_model
 from counterscene_env.world_model.dataset import SceneWindowDataset
 from counterscene_env.world_model.evaluate import constant_velocity, start_steps
 from counterscene_env.world_model.map_guidance import lane_excess
+from counterscene_env.world_model.overlap import new_overlaps
 from counterscene_env.world_model.window import lane_segments
 
 HORIZON = 30  # 3 s at 10 Hz
@@ -107,6 +112,7 @@ def variants(model, batch, state, sel, seed: int) -> dict[str, dict]:
         return torch.cat(out)
 
     no_map = {**batch, "map_valid": torch.zeros_like(batch["map_valid"])}
+    smooth = {**batch, "history": smoothed_speeds(batch["history"], batch["history_valid"])}
     actions, _ = model.target_actions(batch)
     with torch.no_grad():
         logged = model.rollout(model.normalize(actions), state)
@@ -114,10 +120,41 @@ def variants(model, batch, state, sel, seed: int) -> dict[str, dict]:
         "model": sample(batch),
         "network": sample(batch, lane_steering=0),
         "network_no_map": sample(no_map, lane_steering=0),
+        "smoothed_history": sample(smooth),
         "logged_actions": logged,
         "constant_velocity": cv_track(model, state, state[..., 2]),
     }
-    return {name: errors(p, batch, state, sel) for name, p in preds.items()}
+    return {
+        name: {**errors(p, batch, state, sel), "windows_with_new_overlap": overlapping(p, batch)}
+        for name, p in preds.items()
+    }
+
+
+def overlapping(pred, batch) -> float:
+    """Share of windows in which ``pred [B, K, F, >=3]`` puts two agents' boxes on each other
+    within 3 s where the log's boxes do not overlap (``overlap.new_overlaps``; every agent)."""
+    ok = (batch["future_valid"] & batch["agent_valid"][..., None])[..., :HORIZON].numpy()
+    p, log = pred[..., :HORIZON, :].numpy(), batch["future"][..., :HORIZON, :].numpy()
+    ext = batch["extents"].numpy()
+    return float(np.mean([new_overlaps(p[b], log[b], ext[b], ok[b]).any() for b in range(len(ok))]))
+
+
+def smoothed_speeds(hist: torch.Tensor, ok: torch.Tensor, width: int = 5) -> torch.Tensor:
+    """``hist [B, K, H, 4]`` with each past frame's speed replaced by the mean of the valid
+    speeds within ``width`` frames centred on it ("now", the last frame, is kept)."""
+    v, m = hist[..., 3], ok.float()
+    pad = width // 2
+    kernel = torch.ones(1, 1, width)
+
+    def conv(x: torch.Tensor) -> torch.Tensor:
+        flat = torch.nn.functional.pad(x.reshape(-1, 1, x.shape[-1]), (pad, pad))
+        return torch.nn.functional.conv1d(flat, kernel).reshape(x.shape)
+
+    mean = conv(v * m) / conv(m).clamp(min=1)
+    mean[..., -1] = v[..., -1]
+    out = hist.clone()
+    out[..., 3] = torch.where(ok, mean, v)
+    return out
 
 
 def course_test(model, batch, state, sel) -> dict[str, float]:
@@ -146,7 +183,14 @@ def action_stats(model, batch, sel) -> dict:
         "abs_yaw_rate_p50_p90": pct(a[:, 1]),
         "normalised_mean": [round(float(v), 3) for v in z.mean(0)],
         "normalised_std": [round(float(v), 3) for v in z.std(0)],
+        "history_speed_change_p50_p90": pct(speed_changes(batch)),
     }
+
+
+def speed_changes(batch) -> torch.Tensor:
+    """Frame-to-frame speed changes [m/s] over the windows' histories (both frames valid)."""
+    v, ok = batch["history"][..., 3], batch["history_valid"]
+    return (v[..., 1:] - v[..., :-1])[ok[..., 1:] & ok[..., :-1]]
 
 
 def lane_stats(scenes, batch, sel) -> dict:

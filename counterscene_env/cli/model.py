@@ -65,6 +65,13 @@ def add_train(sub) -> None:
         "(default 0: left out; the shipped model used 1.0)",
     )
     tr.add_argument(
+        "--overlap-weight",
+        type=float,
+        default=0.0,
+        help="weight of the loss term on predicted boxes running into each other where the "
+        "log's do not (default 0: left out)",
+    )
+    tr.add_argument(
         "--min-future",
         type=int,
         metavar="STEPS",
@@ -116,6 +123,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         device=args.device,
         init=args.init,
         off_lane_weight=args.off_lane_weight,
+        overlap_weight=args.overlap_weight,
         min_future_steps=args.min_future,
         agent_centred=tuple(args.agent_centred),
         data_weights=None if args.data_weights is None else tuple(args.data_weights),
@@ -293,6 +301,11 @@ def _print_evaluation(result: dict) -> None:
     print(
         f"off-road: model {fmt(result['model']['offroad_rate'])}, constant velocity "
         f"{fmt(result['constant_velocity']['offroad_rate'])}, log {fmt(result['log_offroad_rate'])}"
+    )
+    overlap = result["sample_overlap"]
+    print(
+        "windows whose first sample has two boxes overlapping (the log's do not): "
+        + ", ".join(f"{h} {fmt(overlap[h])}" for h in hz)
     )
     windows = f", {result['windows']} windows" if result.get("every_s") else ""
     print(f"ADE / constant velocity's [95 % interval over scenes{windows}]:")

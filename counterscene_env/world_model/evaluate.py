@@ -15,6 +15,10 @@ its nearest vehicles, ``num_agents`` within ``agent_radius``) over its horizon,
   horizon steps) off the road by the road's own test (``RoadMap.off_road``): outside the
   drivable area and inside the map's extent (a real map is a crop; beyond it nothing is known).
 
+- ``sample_overlap[h]``: the share of windows whose first sample puts two agents' boxes on
+  each other within steps 1..h where the log's boxes do not overlap (``overlap.new_overlaps``):
+  the joint sample's own collisions, which a closed loop without reflexes would drive into.
+
 The constant-velocity baseline moves each agent along its current course at its current speed.
 The log's own off-road rate over the same agent-steps is reported as ``log_offroad_rate`` (real
 maps leave parked cars off the lanes).
@@ -54,6 +58,7 @@ from counterscene_env.scene.core import Scene
 from counterscene_env.scene.road import RoadMap
 from counterscene_env.world_model.dataset import SceneWindowDataset
 from counterscene_env.world_model.model import WorldModel
+from counterscene_env.world_model.overlap import new_overlaps
 
 #: Speed "now" from which an agent counts as moving, m/s; between the two it is "slow"
 #: (creeping in a queue, pulling out, stopping).
@@ -270,6 +275,7 @@ def _score_chunk(
     cv_xy = constant_velocity(state, F, model.config.dt)  # [B, K, F, 2]
     bins = speed_bins(state[..., 3])  # [B, K]
     future = batch["future"].numpy()
+    extents = batch["extents"].numpy()
     valid = batch["future_valid"].numpy() & agent_ok[..., None]
     hz = horizons(model)
     n3 = hz.get("3s", F)
@@ -279,6 +285,9 @@ def _score_chunk(
             continue
         ok = valid[b][keep]  # [A, F]
         gt = future[b][keep, :, :2]
+        clash = new_overlaps(pred[b, 0][keep], future[b][keep], extents[b][keep], ok)  # [F]
+        for h, n in hz.items():
+            sums.count(f"windows/model/overlap/{h}", scene_rows[b], int(clash[:n].any()), 1)
         # Stopped now and still 3 s later in the log: a prediction should stay put too.
         moved = np.linalg.norm(gt[:, n3 - 1] - state[b][keep, :2], axis=-1)
         still = (bins[b][keep] == 0) & ok[:, n3 - 1] & (moved < STILL_DISPLACEMENT)
@@ -460,4 +469,6 @@ def _summary(
         "by_speed": {name: _figures(est, name, hz, agents[name]) for name in SPEED_BINS},
         "still_displacement_m": STILL_DISPLACEMENT,
         "still": _figures(est, "still", hz, agents["still"]),
+        "sample_overlap": {h: est.value(f"windows/model/overlap/{h}") for h in hz},
+        "sample_overlap_ci95": {h: est.ci(f"windows/model/overlap/{h}") for h in hz},
     }

@@ -33,6 +33,7 @@ from counterscene_env.world_model.cig import edge_features
 from counterscene_env.world_model.config import ModelConfig
 from counterscene_env.world_model.denoiser import Context, Denoiser
 from counterscene_env.world_model.map_guidance import off_lane_loss, steer_onto_lanes
+from counterscene_env.world_model.overlap import overlap_loss
 from counterscene_env.world_model.scheduler import CosineScheduler
 from counterscene_env.world_model.window import WindowConfig
 
@@ -305,6 +306,7 @@ class WorldModel(nn.Module):
         batch: dict[str, torch.Tensor],
         generator: torch.Generator | None = None,
         off_lane_weight: float = 0.0,
+        overlap_weight: float = 0.0,
     ) -> dict[str, torch.Tensor]:
         """Training loss of one batch: action MSE plus rolled-out trajectory errors.
 
@@ -317,9 +319,13 @@ class WorldModel(nn.Module):
                 position error alone weighs a turn that goes wide onto the verge no more than
                 one that goes wide along the lane; the open-loop off-road rate is mostly such
                 under-turns (docs/world_model.md).
+            overlap_weight: weight of the overlap term: the mean depth [m] by which the
+                rolled-out prediction's boxes run into each other where the log's do not
+                (``overlap.overlap_loss``). Every agent's error is otherwise scored alone, so
+                nothing teaches the joint sample that two cars cannot share a place.
 
         Returns a dict with ``loss`` (to minimise) and its terms ``action``, ``position`` [m],
-        ``yaw`` [rad], ``speed`` [m/s], ``off_lane`` [m] (detached).
+        ``yaw`` [rad], ``speed`` [m/s], ``off_lane`` [m], ``overlap`` [m] (detached).
         """
         c = self.config
         hist, fut = self.kinematic_states(batch)
@@ -353,6 +359,10 @@ class WorldModel(nn.Module):
         if off_lane_weight > 0:
             off_lane = off_lane_loss(self, batch, traj[..., :2], fut[..., :2], fut_ok)
             loss = loss + off_lane_weight * off_lane
+        overlap = torch.zeros((), device=device)
+        if overlap_weight > 0:
+            overlap = overlap_loss(traj, fut, batch["extents"], fut_ok)
+            loss = loss + overlap_weight * overlap
         return {
             "loss": loss,
             "action": action.detach(),
@@ -360,6 +370,7 @@ class WorldModel(nn.Module):
             "yaw": yaw.detach(),
             "speed": speed.detach(),
             "off_lane": off_lane.detach(),
+            "overlap": overlap.detach(),
         }
 
     # ------------------------------------------------------------------ sampling

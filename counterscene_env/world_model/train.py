@@ -66,6 +66,8 @@ class TrainConfig:
             normalisation start the run (fine-tuning); None: a fresh model.
         off_lane_weight: weight of the loss's off-lane term (``WorldModel.loss``); 0 leaves
             it out.
+        overlap_weight: weight of the loss's overlap term (``WorldModel.loss``: predicted
+            boxes running into each other); 0 leaves it out.
         min_future_steps: future frames a window needs inside its log (None: the model's whole
             horizon); fewer admits the ends of short real logs, their missing frames masked.
         agent_centred: those of ``data`` whose windows centre on every vehicle in turn
@@ -94,11 +96,15 @@ class TrainConfig:
     device: str = "cpu"
     init: str | None = None
     off_lane_weight: float = 0.0
+    overlap_weight: float = 0.0
     min_future_steps: int | None = None
     agent_centred: tuple[str, ...] = ()
     data_weights: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
+        for key in ("off_lane_weight", "overlap_weight"):
+            if not getattr(self, key) >= 0:
+                raise ValueError(f"{key} must be >= 0, got {getattr(self, key)}")
         unknown = [d for d in self.agent_centred if d not in self.data]
         if unknown:
             raise ValueError(f"agent_centred names datasets not in data: {unknown}")
@@ -341,7 +347,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             group["lr"] = learning_rate(cfg, step)
         rows = next(batches).to(device)
         batch = {k: v[rows] for k, v in train_data.items()}
-        losses = model.loss(batch, noise, cfg.off_lane_weight)
+        losses = model.loss(batch, noise, cfg.off_lane_weight, cfg.overlap_weight)
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
@@ -422,6 +428,8 @@ def _plain(cfg: TrainConfig) -> dict[str, Any]:
         d.pop("init")  # runs from before --init existed still resume
     if d["off_lane_weight"] == 0:
         d.pop("off_lane_weight")  # and so do runs from before the off-lane term
+    if d["overlap_weight"] == 0:
+        d.pop("overlap_weight")  # and before the overlap term
     d["steps"] = None  # a longer --steps continues the same run
     d["lr_decay_start"] = None  # and so may the tail of the schedule
     return d
