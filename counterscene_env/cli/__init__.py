@@ -19,7 +19,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from counterscene_env.cli import data, model, paper, report, run
+from counterscene_env.cli import data, evaluate, model, paper, report, run
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -52,7 +52,7 @@ def _parser() -> argparse.ArgumentParser:
     data.add_generate(sub)
     data.add_inspect(sub)
     model.add_train(sub)
-    model.add_evaluate_model(sub)
+    evaluate.add_evaluate_model(sub)
     model.add_bench(sub)
     run.add_bench_env(sub)
     run.add_stress(sub)

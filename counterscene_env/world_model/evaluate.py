@@ -59,6 +59,7 @@ from counterscene_env.scene.road import RoadMap
 from counterscene_env.world_model.dataset import SceneWindowDataset
 from counterscene_env.world_model.model import WorldModel
 from counterscene_env.world_model.overlap import new_overlaps
+from counterscene_env.world_model.scene_bootstrap import SceneBootstrap, SceneSums
 
 #: Speed "now" from which an agent counts as moving, m/s; between the two it is "slow"
 #: (creeping in a queue, pulling out, stopping).
@@ -110,36 +111,8 @@ def speed_bins(speed: np.ndarray) -> np.ndarray:
     return np.digitize(np.abs(speed), SPEED_BIN_EDGES)
 
 
-class _Sums:
-    """Per-scene sums ``[sum, count]`` of named figures, so that intervals can resample scenes.
-
-    A name is ``"<group>/<who>/<key>/<horizon>"`` (``who``: ``model``, ``cv`` or ``log``);
-    ``scene`` is the scene's row, shared by its windows (start times).
-    """
-
-    def __init__(self) -> None:
-        self.sums: dict[str, dict[int, list]] = defaultdict(lambda: defaultdict(lambda: [0.0, 0]))
-
-    def add(self, name: str, scene: int, values: np.ndarray) -> None:
-        entry = self.sums[name][scene]
-        entry[0] += float(values.sum())
-        entry[1] += int(values.size)
-
-    def count(self, name: str, scene: int, hits: int, total: int) -> None:
-        entry = self.sums[name][scene]
-        entry[0] += hits
-        entry[1] += total
-
-    def arrays(self, name: str, scenes: int) -> tuple[np.ndarray, np.ndarray]:
-        """``[scenes]`` sums and counts of ``name`` (zero for scenes without it)."""
-        s, n = np.zeros(scenes), np.zeros(scenes)
-        for i, (a, b) in self.sums.get(name, {}).items():
-            s[i], n[i] = a, b
-        return s, n
-
-
 def _add_errors(
-    sums: _Sums, prefix: str, scene: int, hz: dict[str, int], err: np.ndarray, ok: np.ndarray
+    sums: SceneSums, prefix: str, scene: int, hz: dict[str, int], err: np.ndarray, ok: np.ndarray
 ) -> None:
     """Add ``A`` agents' displacement errors ``err [S, A, F]`` m (valid ``ok [A, F]``) under
     ``prefix``: ADE and FDE of the first sample, and the best of the samples (marginal)."""
@@ -225,7 +198,7 @@ def evaluate_model(
     scenes = [given[i] for i in keep]
     jobs = [(row[k], t) for k, t in jobs]
     model = model.eval()
-    sums = _Sums()
+    sums = SceneSums()
     agents = defaultdict(int)
     g = torch.Generator().manual_seed(seed)
     bar = None
@@ -261,7 +234,7 @@ def _score_chunk(
     scene_rows: list[int],
     num_samples: int,
     g: torch.Generator,
-    sums: _Sums,
+    sums: SceneSums,
     agents: dict[str, int],
 ) -> None:
     """Sample a batch of B windows (``roads`` and ``scene_rows`` one per window); add model and
@@ -317,7 +290,7 @@ def _score_scene(
     still: np.ndarray,
     scene: int,
     hz: dict[str, int],
-    sums: _Sums,
+    sums: SceneSums,
     agents: dict[str, int],
 ) -> None:
     """Add one window's errors [m] and off-road counts to ``"all"``, each agent's speed bin and
@@ -351,62 +324,7 @@ def _score_scene(
             sums.count(f"{name}/{who}/off", scene, int((off[:, sel] & mask).sum()), int(mask.sum()))
 
 
-class _Estimates:
-    """Pooled figures (sum over scenes of sums / sum of counts) and their 95 % intervals from
-    a bootstrap over scenes (``resamples`` draws of the scenes with replacement, the same draws
-    for every figure, so ratios between figures are paired)."""
-
-    def __init__(self, sums: _Sums, scenes: int, resamples: int, seed: int) -> None:
-        self.sums, self.scenes = sums, scenes
-        rng = np.random.default_rng(seed)
-        self.draws = rng.integers(0, scenes, (resamples, scenes)) if resamples and scenes else None
-        self._draws_of: dict[str, np.ndarray | None] = {}
-
-    def _stats(self, name: str) -> tuple[np.ndarray, np.ndarray]:
-        return self.sums.arrays(name, self.scenes)
-
-    def value(self, name: str) -> float | None:
-        s, n = self._stats(name)
-        return float(s.sum() / n.sum()) if n.sum() else None
-
-    def _boot(self, name: str) -> np.ndarray | None:
-        # A figure's draws serve its own interval and every ratio it is part of.
-        if name not in self._draws_of:
-            self._draws_of[name] = self._resample(name)
-        return self._draws_of[name]
-
-    def _resample(self, name: str) -> np.ndarray | None:
-        s, n = self._stats(name)
-        if self.draws is None or not n.sum():
-            return None
-        ns = n[self.draws].sum(1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(ns > 0, s[self.draws].sum(1) / ns, np.nan)
-
-    @staticmethod
-    def _interval(draws: np.ndarray | None) -> list[float] | None:
-        # A resample without the figure's agents (or, for a ratio, with a zero denominator:
-        # constant velocity is exact on still cars) has no value; the others make the interval.
-        draws = None if draws is None else draws[np.isfinite(draws)]
-        if draws is None or not draws.size:
-            return None
-        return [float(x) for x in np.percentile(draws, [2.5, 97.5])]
-
-    def ci(self, name: str) -> list[float] | None:
-        return self._interval(self._boot(name))
-
-    def ratio(self, num: str, den: str) -> tuple[float | None, list[float] | None]:
-        """``value(num) / value(den)`` and its interval (paired draws)."""
-        a, b = self.value(num), self.value(den)
-        if a is None or not b:
-            return None, None
-        da, db = self._boot(num), self._boot(den)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            draws = None if da is None or db is None else da / db
-        return a / b, self._interval(draws)
-
-
-def _figures(est: _Estimates, group: str, hz: dict[str, int], agents: int) -> dict[str, Any]:
+def _figures(est: SceneBootstrap, group: str, hz: dict[str, int], agents: int) -> dict[str, Any]:
     """The figures of one group of agents: ``agents``, ``model``, ``constant_velocity`` (each
     with ``ci95``), the model's ADE and min-ADE as ratios to constant velocity's, and
     ``log_offroad_rate``."""
@@ -445,7 +363,7 @@ def _summary(
     windows: int,
     every: float | None,
     num_samples: int,
-    sums: _Sums,
+    sums: SceneSums,
     agents: dict[str, int],
     bootstrap: int,
     seed: int,
@@ -453,7 +371,7 @@ def _summary(
     """The JSON summary of :func:`evaluate_model` from its accumulated sums: the figures of all
     agents at the top level (the layout from before the speed split), each speed bin's under
     ``by_speed``, the still agents' under ``still``. Agent counts are agent-windows."""
-    est = _Estimates(sums, scenes, bootstrap, seed)
+    est = SceneBootstrap(sums, scenes, bootstrap, seed)
     hz = horizons(model)
     return {
         "scenes": scenes,

@@ -1,4 +1,4 @@
-"""The world model: features from a scene window, the training loss, and batched sampling.
+"""The world model: the training loss and batched sampling (input features: ``features.py``).
 
 A *batch* is a dict of tensors in the layout of
 :class:`counterscene_env.world_model.dataset.SceneWindowDataset` (leading batch axis ``B``): ``history
@@ -29,6 +29,7 @@ from counterscene_env.dynamics import (
     unicycle_rollout,
     wrap_angle,
 )
+from counterscene_env.world_model import features
 from counterscene_env.world_model.cig import edge_features
 from counterscene_env.world_model.config import ModelConfig
 from counterscene_env.world_model.denoiser import Context, Denoiser
@@ -36,12 +37,6 @@ from counterscene_env.world_model.map_guidance import off_lane_loss, steer_onto_
 from counterscene_env.world_model.overlap import overlap_loss
 from counterscene_env.world_model.scheduler import CosineScheduler
 from counterscene_env.world_model.window import WindowConfig
-
-POSITION_SCALE = 20.0  # m: input positions are divided by this
-SPEED_SCALE = 10.0  # m/s
-LENGTH_SCALE = 5.0  # m
-WIDTH_SCALE = 2.0  # m
-LANE_WIDTH_SCALE = 4.0  # m
 
 # Trajectory terms of the training loss, added to the action MSE (normalised units): the mean
 # position error [m], heading error [rad] and speed error [m/s] of the rolled-out prediction.
@@ -181,59 +176,16 @@ class WorldModel(nn.Module):
     ) -> Context:
         """Encode history, agents, CIG edges and lanes (once per sampling call)."""
         c = self.config
-        hist, hist_ok = batch["history"], batch["history_valid"]
-        # History tokens: "now" and every history_stride-th frame before it, oldest first.
-        idx = torch.arange(hist.shape[-2] - 1, -1, -c.history_stride).flip(0)
-        hist, hist_ok = hist[..., idx, :], hist_ok[..., idx]
         valid = self.agent_mask(batch)
-        hist_ok = hist_ok & valid[..., None]
-        now = hist[..., -1, :]
         course = self.current_state(batch)[..., 2]
-        x, y, yaw, v = hist.unbind(-1)
-        age = (idx - idx[-1]).to(hist.dtype) / max(c.history_steps - 1, 1)
-        hfeat = torch.stack(
-            [
-                x / POSITION_SCALE,
-                y / POSITION_SCALE,
-                (x - now[..., None, 0]) / POSITION_SCALE,
-                (y - now[..., None, 1]) / POSITION_SCALE,
-                torch.cos(yaw),
-                torch.sin(yaw),
-                v / SPEED_SCALE,
-                hist_ok.to(hist.dtype),
-                age.expand_as(x),
-            ],
-            -1,
-        )
-        hfeat = torch.where(hist_ok[..., None], hfeat, 0.0)
-        ext = batch["extents"]
-        afeat = torch.stack(
-            [
-                now[..., 0] / POSITION_SCALE,
-                now[..., 1] / POSITION_SCALE,
-                torch.cos(now[..., 2]),
-                torch.sin(now[..., 2]),
-                torch.cos(course),
-                torch.sin(course),
-                now[..., 3] / SPEED_SCALE,
-                ext[..., 0] / LENGTH_SCALE,
-                ext[..., 1] / WIDTH_SCALE,
-            ],
-            -1,
-        )
-        afeat = torch.where(valid[..., None], afeat, 0.0)
-
+        hfeat, hist_ok = features.history_features(batch, valid, c.history_stride, c.history_steps)
+        now = batch["history"][..., -1, :]
+        afeat = features.agent_features(now, course, batch["extents"], valid)
         velocity = now[..., 3:4] * torch.stack([torch.cos(course), torch.sin(course)], -1)
         edges = edge_features(now[..., :2], velocity, valid, horizon=c.horizon)
-
-        lanes, lanes_ok = batch["map"], batch["map_valid"]
-        direction = torch.diff(lanes, dim=-2, append=lanes[..., -1:, :] * 2 - lanes[..., -2:-1, :])
-        direction = direction / direction.norm(dim=-1, keepdim=True).clamp(min=1e-6)
-        width = batch["map_widths"][..., None, None].expand(*lanes.shape[:-1], 1)
-        lfeat = torch.cat([lanes / POSITION_SCALE, direction, width / LANE_WIDTH_SCALE], -1)
-        lfeat = torch.where(lanes_ok[..., None, None], lfeat, 0.0)
+        lfeat, lanes_ok, direction, width = features.lane_features(batch)
         local, local_ok = (
-            self.local_map(lanes, direction, width, lanes_ok, now[..., :2], course, valid)
+            self.local_map(batch["map"], direction, width, lanes_ok, now[..., :2], course, valid)
             if c.local_lanes
             else (None, None)
         )
@@ -261,44 +213,20 @@ class WorldModel(nn.Module):
         course: torch.Tensor,
         valid: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Each agent's agent-centric map: its ``Ml = min(local_lanes, M)`` nearest lane
-        segments in its own frame (origin at its position, x along its course).
-
-        Args:
-            lanes: ``[B, M, P, 2]`` lane points [m] (ego frame).
-            direction: ``[B, M, P, 2]`` unit tangents.
-            width: ``[B, M, P, 1]`` lane widths [m].
-            lanes_ok: ``[B, M]`` bool.
-            position: ``[B, K, 2]`` agents at "now" [m]; ``course``: ``[B, K]`` rad.
-            valid: ``[B, K]`` bool.
-
-        Returns:
-            ``[B, K, Ml, P, 5]`` features (x, y [/20 m], tangent, width [/4 m]) and the
-            ``[B, K, Ml]`` mask: a real lane within ``local_radius`` of a valid agent.
-        """
+        """Each agent's agent-centric map (``features.local_map``, with this model's
+        ``local_lanes`` and ``local_radius``)."""
         c = self.config
-        B, K = position.shape[:2]
-        gap = (lanes[:, None] - position[:, :, None, None, :]).norm(dim=-1).amin(-1)  # [B, K, M]
-        gap = torch.where(lanes_ok[:, None, :], gap, torch.inf)
-        Ml = min(c.local_lanes, gap.shape[-1])
-        near, idx = gap.topk(Ml, dim=-1, largest=False)  # [B, K, Ml]
-
-        def pick(t: torch.Tensor) -> torch.Tensor:  # [B, M, P, C] -> [B, K, Ml, P, C]
-            flat = idx.reshape(B, -1)[..., None, None].expand(-1, -1, *t.shape[2:])
-            return t.gather(1, flat).reshape(B, K, Ml, *t.shape[2:])
-
-        cos, sin = torch.cos(course)[..., None, None], torch.sin(course)[..., None, None]
-
-        def rotate(v: torch.Tensor) -> torch.Tensor:  # world -> agent frame, [B, K, Ml, P, 2]
-            x, y = v.unbind(-1)
-            return torch.stack([cos * x + sin * y, -sin * x + cos * y], -1)
-
-        rel = rotate(pick(lanes) - position[:, :, None, None, :])
-        feat = torch.cat(
-            [rel / POSITION_SCALE, rotate(pick(direction)), pick(width) / LANE_WIDTH_SCALE], -1
+        return features.local_map(
+            lanes,
+            direction,
+            width,
+            lanes_ok,
+            position,
+            course,
+            valid,
+            c.local_lanes,
+            c.local_radius,
         )
-        ok = (near <= c.local_radius) & valid[..., None]
-        return torch.where(ok[..., None, None], feat, 0.0), ok
 
     # ------------------------------------------------------------------ training
     def loss(

@@ -1,0 +1,144 @@
+"""The network's input features from a window batch: history tokens, per-agent features, lane
+features and each agent's agent-centric map (``WorldModel.context`` encodes them).
+
+Shapes: B windows, K agent slots, H history frames, M lane segments of P points. Positions and
+lengths are scaled by the constants below so that features are of order one.
+"""
+
+from __future__ import annotations
+
+import torch
+
+POSITION_SCALE = 20.0  # m: input positions are divided by this
+SPEED_SCALE = 10.0  # m/s
+LENGTH_SCALE = 5.0  # m
+WIDTH_SCALE = 2.0  # m
+LANE_WIDTH_SCALE = 4.0  # m
+
+
+def history_features(
+    batch: dict[str, torch.Tensor], valid: torch.Tensor, stride: int, history_steps: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """History tokens: "now" and every ``stride``-th frame before it, oldest first.
+
+    Args:
+        batch: ``history [B, K, H, 4]`` (x m, y m, yaw rad, speed m/s) and ``history_valid``.
+        valid: ``[B, K]`` bool, the agents the window holds.
+
+    Returns:
+        ``[B, K, Th, 9]`` features (position, position relative to "now", heading, speed,
+        validity, age) and their ``[B, K, Th]`` mask, ``Th`` the history tokens.
+    """
+    hist, hist_ok = batch["history"], batch["history_valid"]
+    idx = torch.arange(hist.shape[-2] - 1, -1, -stride).flip(0)
+    hist, hist_ok = hist[..., idx, :], hist_ok[..., idx]
+    hist_ok = hist_ok & valid[..., None]
+    now = hist[..., -1, :]
+    x, y, yaw, v = hist.unbind(-1)
+    age = (idx - idx[-1]).to(hist.dtype) / max(history_steps - 1, 1)
+    hfeat = torch.stack(
+        [
+            x / POSITION_SCALE,
+            y / POSITION_SCALE,
+            (x - now[..., None, 0]) / POSITION_SCALE,
+            (y - now[..., None, 1]) / POSITION_SCALE,
+            torch.cos(yaw),
+            torch.sin(yaw),
+            v / SPEED_SCALE,
+            hist_ok.to(hist.dtype),
+            age.expand_as(x),
+        ],
+        -1,
+    )
+    return torch.where(hist_ok[..., None], hfeat, 0.0), hist_ok
+
+
+def agent_features(
+    now: torch.Tensor, course: torch.Tensor, extents: torch.Tensor, valid: torch.Tensor
+) -> torch.Tensor:
+    """``[B, K, 9]`` per-agent features: position, heading, course and speed "now" (``now
+    [B, K, 4]``, ``course [B, K]`` rad) and the box size (``extents [B, K, 2]`` m); zero for
+    slots not ``valid``."""
+    afeat = torch.stack(
+        [
+            now[..., 0] / POSITION_SCALE,
+            now[..., 1] / POSITION_SCALE,
+            torch.cos(now[..., 2]),
+            torch.sin(now[..., 2]),
+            torch.cos(course),
+            torch.sin(course),
+            now[..., 3] / SPEED_SCALE,
+            extents[..., 0] / LENGTH_SCALE,
+            extents[..., 1] / WIDTH_SCALE,
+        ],
+        -1,
+    )
+    return torch.where(valid[..., None], afeat, 0.0)
+
+
+def lane_features(
+    batch: dict[str, torch.Tensor],
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Lane features from ``map [B, M, P, 2]`` m, ``map_valid`` and ``map_widths [B, M]`` m.
+
+    Returns:
+        ``[B, M, P, 5]`` features (points, unit tangents, width), the ``[B, M]`` mask, and the
+        tangents ``[B, M, P, 2]`` and widths ``[B, M, P, 1]`` m (for :func:`local_map`).
+    """
+    lanes, lanes_ok = batch["map"], batch["map_valid"]
+    direction = torch.diff(lanes, dim=-2, append=lanes[..., -1:, :] * 2 - lanes[..., -2:-1, :])
+    direction = direction / direction.norm(dim=-1, keepdim=True).clamp(min=1e-6)
+    width = batch["map_widths"][..., None, None].expand(*lanes.shape[:-1], 1)
+    lfeat = torch.cat([lanes / POSITION_SCALE, direction, width / LANE_WIDTH_SCALE], -1)
+    return torch.where(lanes_ok[..., None, None], lfeat, 0.0), lanes_ok, direction, width
+
+
+def local_map(
+    lanes: torch.Tensor,
+    direction: torch.Tensor,
+    width: torch.Tensor,
+    lanes_ok: torch.Tensor,
+    position: torch.Tensor,
+    course: torch.Tensor,
+    valid: torch.Tensor,
+    local_lanes: int,
+    local_radius: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each agent's agent-centric map: its ``Ml = min(local_lanes, M)`` nearest lane
+    segments in its own frame (origin at its position, x along its course).
+
+    Args:
+        lanes: ``[B, M, P, 2]`` lane points [m] (ego frame).
+        direction: ``[B, M, P, 2]`` unit tangents.
+        width: ``[B, M, P, 1]`` lane widths [m].
+        lanes_ok: ``[B, M]`` bool.
+        position: ``[B, K, 2]`` agents at "now" [m]; ``course``: ``[B, K]`` rad.
+        valid: ``[B, K]`` bool.
+        local_lanes, local_radius: lanes per agent, and how near [m] a lane must be.
+
+    Returns:
+        ``[B, K, Ml, P, 5]`` features (x, y [/20 m], tangent, width [/4 m]) and the
+        ``[B, K, Ml]`` mask: a real lane within ``local_radius`` of a valid agent.
+    """
+    B, K = position.shape[:2]
+    gap = (lanes[:, None] - position[:, :, None, None, :]).norm(dim=-1).amin(-1)  # [B, K, M]
+    gap = torch.where(lanes_ok[:, None, :], gap, torch.inf)
+    Ml = min(local_lanes, gap.shape[-1])
+    near, idx = gap.topk(Ml, dim=-1, largest=False)  # [B, K, Ml]
+
+    def pick(t: torch.Tensor) -> torch.Tensor:  # [B, M, P, C] -> [B, K, Ml, P, C]
+        flat = idx.reshape(B, -1)[..., None, None].expand(-1, -1, *t.shape[2:])
+        return t.gather(1, flat).reshape(B, K, Ml, *t.shape[2:])
+
+    cos, sin = torch.cos(course)[..., None, None], torch.sin(course)[..., None, None]
+
+    def rotate(v: torch.Tensor) -> torch.Tensor:  # world -> agent frame, [B, K, Ml, P, 2]
+        x, y = v.unbind(-1)
+        return torch.stack([cos * x + sin * y, -sin * x + cos * y], -1)
+
+    rel = rotate(pick(lanes) - position[:, :, None, None, :])
+    feat = torch.cat(
+        [rel / POSITION_SCALE, rotate(pick(direction)), pick(width) / LANE_WIDTH_SCALE], -1
+    )
+    ok = (near <= local_radius) & valid[..., None]
+    return torch.where(ok[..., None, None], feat, 0.0), ok
