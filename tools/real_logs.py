@@ -5,7 +5,8 @@ adversary. The evaluation behind docs/scenes.md ("Real logs, measured").
         --scenarionet waymo=../shared/data/waymo_scenarionet --commonroad ngsim=/tmp/cr \
         --plots 2 --out reports/real_logs
 
-Per source (``NAME=DIR``; ``--scenarionet`` and ``--commonroad`` repeat):
+Per source (``NAME=DIR``; ``--scenarionet`` and ``--commonroad`` repeat; ``--scenarionet``
+also reads a dataset directory of ``counterscene generate``, e.g. generated held-out scenes):
 
 - loading: scenes, agents by type, what the importer repaired or dropped, load time;
 - the factual log against its own map, over the whole log: the share of vehicle positions

@@ -34,7 +34,8 @@ def add_evaluate_model(sub) -> None:
             "--seed), of dataset directories, or of real logs (ScenarioNet or CommonRoad), and "
             "report ADE/FDE at 1, 2, 3 s and the full horizon (one sample, and the best of "
             "--samples) and the off-road rate, for all agents and split by their speed now "
-            "(parked < 0.5 m/s <= slow < 3 m/s <= moving)."
+            "(parked < 0.5 m/s <= slow < 3 m/s <= moving), and the share of windows whose "
+            "sample puts two boxes on each other where the log's do not."
         ),
     )
     ev_src = ev.add_mutually_exclusive_group(required=True)
