@@ -10,7 +10,8 @@ and valid 3 s later are scored; for each:
 
 - ``variants``: ADE over 0-3 s [m], the error 3 s ahead split along the agent's course now
   (``along_mean``, ``along_abs``) and across it (``cross_abs``), speed 3 s ahead [m/s] and the
-  course change by then [deg], for the model (one sample, as configured), the network alone
+  course change by then [deg], the speed change over 3 s (mean, mean size, and its
+  correlation with the log's: does the prediction know who speeds up and who slows down?), for the model (one sample, as configured), the network alone
   (no final-step lane keeping), the network with no lane map at all, the model with the
   history's past speeds smoothed over 0.5 s ("now" kept: are jumpy real-log speeds what
   misleads it?), the log's own action
@@ -84,7 +85,14 @@ def errors(pred, batch, state, sel) -> dict[str, float]:
         torch.sin(pred[..., HORIZON - 1, 2] - state[..., 2]),
         torch.cos(pred[..., HORIZON - 1, 2] - state[..., 2]),
     )
+    # Speed change over 3 s, predicted and logged: is it informed (correlated with the log's)?
+    logged = (fut[..., HORIZON - 1, :2] - fut[..., HORIZON - 2, :2]).norm(dim=-1) / 0.1
+    dv, dv_log = (speed - state[..., 3])[sel].numpy(), (logged - state[..., 3])[sel].numpy()
+    informed = float(np.corrcoef(dv, dv_log)[0, 1]) if dv.std() > 0 and dv_log.std() > 0 else None
     return {
+        "speed_change_mean": float(dv.mean()),
+        "speed_change_abs": float(np.abs(dv).mean()),
+        "speed_change_corr_with_log": informed,
         "ade3": float(ade[sel].mean()),
         "along_mean": float(along[sel].mean()),
         "along_abs": float(along[sel].abs().mean()),
