@@ -11,6 +11,7 @@ from torch.utils.data import default_collate
 from counterscene_env.dynamics import unicycle_rollout
 from counterscene_env.world_model.config import preset
 from counterscene_env.world_model.dataset import SceneWindowDataset
+from counterscene_env.world_model.features import local_map
 from counterscene_env.world_model.map_guidance import off_lane_loss
 from counterscene_env.world_model.model import Normalization, WorldModel
 from counterscene_env.world_model.train import action_statistics
@@ -542,7 +543,6 @@ def test_off_lane_term_counts_only_where_the_log_keeps_to_a_lane(tiny):
 
 
 def test_local_map_is_each_agents_nearest_lanes_in_its_own_frame():
-    model = _model(TINY.replace(local_lanes=2, local_radius=30.0))
     # Lane 0 runs north along x = 10, lane 1 is 100 m away, lane 2 is padding.
     lanes = torch.tensor(
         [[[10.0, 0.0], [10.0, 5.0], [10.0, 10.0]], [[110.0, 0.0], [110.0, 5.0], [110.0, 10.0]]]
@@ -555,7 +555,7 @@ def test_local_map_is_each_agents_nearest_lanes_in_its_own_frame():
     position = torch.tensor([[[10.0, -5.0], [0.0, 0.0]]])
     course = torch.tensor([[np.pi / 2, 0.0]])
     valid = torch.tensor([[True, False]])
-    feat, ok = model.local_map(lanes, direction, width, lanes_ok, position, course, valid)
+    feat, ok = local_map(lanes, direction, width, lanes_ok, position, course, valid, 2, 30.0)
     assert feat.shape == (1, 2, 2, 3, 5)
     # Nearest first: lane 0, then lane 1, which is beyond local_radius.
     assert ok.tolist() == [[[True, False], [False, False]]]

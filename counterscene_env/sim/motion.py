@@ -94,9 +94,8 @@ def advance(
     ep.source[egos, t1] = MotionSource.EGO
 
     _move_egos(ep, actions, states)
-    entering = entered.copy()
-    entering[egos] = False
-    ep.source[_hold_entries(ep, entering), t1] = MotionSource.NONE
+    # Egos never enter: they are present at every step (``present[egos]`` above).
+    ep.source[_hold_entries(ep, entered), t1] = MotionSource.NONE
     ep.t = t1
 
 
@@ -138,27 +137,21 @@ def _hold_entries(ep: Episode, entering: np.ndarray) -> list[int]:
     occupied = ep.valid[:, t1].copy()
     occupied[rows] = False
     held = []
+
+    def overlaps(r: int, others: np.ndarray, states) -> np.ndarray:
+        """Whether row ``r``'s box overlaps each of ``others``' at step t + 1 in ``states``
+        (the episode or its log)."""
+        pos, yaw = states.positions[:, t1], states.yaws[:, t1]
+        return geometry.boxes_overlap(
+            pos[r], yaw[r], log.extents[r], pos[others], yaw[others], log.extents[others]
+        )
+
     for r in rows:
         others = np.flatnonzero(occupied)
-        now = geometry.boxes_overlap(
-            ep.positions[r, t1],
-            ep.yaws[r, t1],
-            log.extents[r],
-            ep.positions[others, t1],
-            ep.yaws[others, t1],
-            log.extents[others],
-        )
         # An overlap the log itself has (a group of pedestrians, a real log's annotations)
         # is the log's, not the replay's: it does not hold the agent back.
-        logged = log.valid[others, t1] & geometry.boxes_overlap(
-            log.positions[r, t1],
-            log.yaws[r, t1],
-            log.extents[r],
-            log.positions[others, t1],
-            log.yaws[others, t1],
-            log.extents[others],
-        )
-        if (now & ~logged).any():
+        logged = log.valid[others, t1] & overlaps(r, others, log)
+        if (overlaps(r, others, ep) & ~logged).any():
             ep.valid[r, t1] = False
             held.append(int(r))
         else:

@@ -185,7 +185,17 @@ class WorldModel(nn.Module):
         edges = edge_features(now[..., :2], velocity, valid, horizon=c.horizon)
         lfeat, lanes_ok, direction, width = features.lane_features(batch)
         local, local_ok = (
-            self.local_map(batch["map"], direction, width, lanes_ok, now[..., :2], course, valid)
+            features.local_map(
+                batch["map"],
+                direction,
+                width,
+                lanes_ok,
+                now[..., :2],
+                course,
+                valid,
+                c.local_lanes,
+                c.local_radius,
+            )
             if c.local_lanes
             else (None, None)
         )
@@ -201,31 +211,6 @@ class WorldModel(nn.Module):
             generator,
             local,
             local_ok,
-        )
-
-    def local_map(
-        self,
-        lanes: torch.Tensor,
-        direction: torch.Tensor,
-        width: torch.Tensor,
-        lanes_ok: torch.Tensor,
-        position: torch.Tensor,
-        course: torch.Tensor,
-        valid: torch.Tensor,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Each agent's agent-centric map (``features.local_map``, with this model's
-        ``local_lanes`` and ``local_radius``)."""
-        c = self.config
-        return features.local_map(
-            lanes,
-            direction,
-            width,
-            lanes_ok,
-            position,
-            course,
-            valid,
-            c.local_lanes,
-            c.local_radius,
         )
 
     # ------------------------------------------------------------------ training
