@@ -58,6 +58,27 @@ def test_unsafe_seed_is_rejected_and_the_next_seed_used():
     assert scene.metadata["seed"] == 1 and scene.metadata["rejected_seeds"] == [0]
 
 
+def test_a_doomed_recording_stops_at_its_first_overlap_and_keeps_the_same_scenes(monkeypatch):
+    """Seed 0 of the intersection crashes about 8 s in: the recording stops there instead of
+    simulating the whole 13 s, and the scenes kept (with the check or without it) are equal."""
+    import counterscene_env.scene.highway as highway
+
+    frames = []
+    step = highway._Traffic.step
+    monkeypatch.setattr(
+        highway._Traffic, "step", lambda self, dt: frames.append(dt) or step(self, dt)
+    )
+    with pytest.raises(RejectedScene, match="overlap at step"):
+        record("intersection", 0)
+    full = (13.0 + highway.WARMUP["intersection"]) * GeneratorConfig().sim_frequency
+    assert 0 < len(frames) < full  # the whole log: exactly `full` frames
+    early = generate("intersection", seed=0)
+    monkeypatch.setattr(highway, "_reject_early", lambda *args: None)
+    late = generate("intersection", seed=0)
+    assert early.metadata["rejected_seeds"] == late.metadata["rejected_seeds"] == [0]
+    np.testing.assert_array_equal(early.positions, late.positions)
+
+
 def test_bad_arguments():
     with pytest.raises(ValueError, match="unknown scenario"):
         generate("parking", seed=0)

@@ -34,6 +34,7 @@ def counterscene_defaults() -> dict[str, Any]:
         # Scenes and traffic; then every closed-loop setting (SimConfig's fields)
         "scenario": "intersection",
         "model": "default",
+        "prefetch_scenes": True,  # record the next generated scene in a background process
         **defaults(SimConfig),
         # The ego: highway-env observation and action types
         "observation": {
@@ -90,6 +91,7 @@ OBSERVATION_TYPES = (
 )
 ACTION_TYPES = ("ContinuousAction", "DiscreteAction", "DiscreteMetaAction", "MultiAgentAction")
 _BOOL_KEYS = (
+    "prefetch_scenes",
     "terminate_on_collision",
     "terminate_on_off_road",
     "show_adversary_plan",

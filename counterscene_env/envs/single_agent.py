@@ -40,6 +40,7 @@ from counterscene_env.envs.spaces import (
     bounded_space,
     check_action,
 )
+from counterscene_env.envs.threads import one_thread_if
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import SceneSource
 from counterscene_env.sim import ClosedLoop, SimConfig
@@ -282,6 +283,8 @@ class CounterSceneEnv(AbstractEnv):
         self.controlled_vehicles = self.mirror.egos
         self.traffic = self.mirror.traffic
         self._sync_road()
+        if config["prefetch_scenes"] and not self.shared:
+            self._source.prefetch(self.np_random)  # the next reset's scene, if it draws one
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         """highway-env's step, after the action is checked: a refused action (wrong type,
@@ -364,7 +367,8 @@ class CounterSceneEnv(AbstractEnv):
         while True:
             states = np.full((B, E, 4), np.nan)
             states[self.slot] = self.advance_egos()
-            self.loop.step(ego_states=states, only=only)
+            with one_thread_if(self._source.recording_ahead):
+                self.loop.step(ego_states=states, only=only)
             if self.end_frame():
                 break
             self._automatic_rendering()

@@ -21,12 +21,14 @@ with the log (``ClosedLoop`` caps its length at the log's last step).
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from counterscene_env.config import COMMONROAD_PREFIX, SCENARIONET_PREFIX, Scenario
+from counterscene_env.scene import prefetch
 from counterscene_env.scene.core import Scene, playable
 from counterscene_env.scene.egos import ego_choices, with_ego
 
@@ -123,18 +125,52 @@ class SceneSource:
             raise ValueError(f"scenario must be a name, a path or a list of them, got {spec!r}")
         self.specs = [check_spec(s) for s in specs]
         self._cache: dict[str, list[Scene]] = {}
+        self._ahead: prefetch.Prefetch | None = None
+        #: Draws served by a recording made ahead (:meth:`prefetch`), this process.
+        self.served_ahead = 0
 
     def draw(self, rng: np.random.Generator) -> Scene:
-        """One scene: pick a spec, then a fresh recording (generated) or a stored scene."""
+        """One scene: pick a spec, then a fresh recording (generated) or a stored scene; the
+        recording :meth:`prefetch` made if it is this one."""
+        spec, k = self._pick(rng)
+        if spec in Scenario.values():
+            ahead, self._ahead = self._ahead, None
+            scene = ahead.take(spec, k) if ahead is not None else None
+            self.served_ahead += scene is not None
+            if scene is None:
+                from counterscene_env.scene.highway import generate
+
+                scene = generate(spec, k)
+            return scene
+        return self._scenes(spec)[k]
+
+    def prefetch(self, rng: np.random.Generator) -> None:
+        """Start recording, in a background process, the scene that ``draw(rng)`` would give
+        now (``rng`` is not advanced; ``scene/prefetch.py``). Nothing for a stored spec, in a
+        daemonic process, or while a recording ahead is still pending."""
+        if self._ahead is not None or not prefetch.available():
+            return
+        spec, k = self._pick(copy.deepcopy(rng))
+        if spec in Scenario.values():
+            self._ahead = prefetch.Prefetch(spec, k)
+
+    @property
+    def recording_ahead(self) -> bool:
+        """Whether a background process is recording a scene for this source right now."""
+        return self._ahead is not None and self._ahead.running
+
+    def __getstate__(self) -> dict:
+        # A recording ahead belongs to this process (a copy or a pickle records its own).
+        return {**self.__dict__, "_ahead": None}
+
+    def _pick(self, rng: np.random.Generator) -> tuple[str, int]:
+        """The spec and the seed (generated) or scene index (stored) of a draw."""
         spec = (
             self.specs[int(rng.integers(len(self.specs)))] if len(self.specs) > 1 else self.specs[0]
         )
         if spec in Scenario.values():
-            from counterscene_env.scene.highway import generate
-
-            return generate(spec, int(rng.integers(SEED_RANGE)))
-        scenes = self._scenes(spec)
-        return scenes[int(rng.integers(len(scenes)))]
+            return spec, int(rng.integers(SEED_RANGE))
+        return spec, int(rng.integers(len(self._scenes(spec))))
 
     def _scenes(self, spec: str) -> list[Scene]:
         if spec not in self._cache:

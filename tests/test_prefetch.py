@@ -1,0 +1,75 @@
+"""Recording the next episode's scene in a background process (scene/prefetch.py): the env
+gives the same episodes with it as without, and takes the recording only when it is the scene
+its draw asks for."""
+
+from __future__ import annotations
+
+import multiprocessing
+
+import numpy as np
+import pytest
+
+from counterscene_env.envs.single_agent import CounterSceneEnv
+from counterscene_env.scene import prefetch
+from counterscene_env.scene.sources import SceneSource
+
+pytestmark = pytest.mark.slow  # starts the worker process (a second or two)
+
+
+def _run(env: CounterSceneEnv, resets: list[int | None], steps: int = 8) -> list[np.ndarray]:
+    """Observations of consecutive episodes (``None``: reset without a seed)."""
+    out = []
+    for seed in resets:
+        obs, _ = env.reset(seed=seed)
+        out.append(obs)
+        for _ in range(steps):
+            obs, _, terminated, truncated, _ = env.step(np.array([0.2, 0.0], np.float32))
+            out.append(obs)
+            if terminated or truncated:
+                break
+        out.append(env.scene.positions)
+    return out
+
+
+def test_episodes_with_scenes_recorded_ahead_are_the_episodes_without():
+    ahead = CounterSceneEnv(config={"prefetch_scenes": True})
+    inline = CounterSceneEnv(config={"prefetch_scenes": False})
+    resets = [3, None, None, 7, None]  # a re-seeded reset cannot use the scene recorded ahead
+    a, b = _run(ahead, resets), _run(inline, resets)
+    assert len(a) == len(b)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)
+    # Unseeded resets took the recording ahead; the re-seeded one and the first did not.
+    assert ahead.unwrapped._source.served_ahead == 3
+    assert inline.unwrapped._source.served_ahead == 0
+
+
+def test_a_recording_ahead_is_taken_only_for_the_draw_it_was_made_for():
+    source = SceneSource("merge")
+    rng = np.random.default_rng(0)
+    source.prefetch(rng)
+    other = np.random.default_rng(1)  # a different draw: recorded here, the one ahead dropped
+    expected = SceneSource("merge").draw(np.random.default_rng(1))
+    np.testing.assert_array_equal(source.draw(other).positions, expected.positions)
+    assert source.served_ahead == 0
+    source.prefetch(rng)
+    same = SceneSource("merge").draw(np.random.default_rng(0))
+    np.testing.assert_array_equal(source.draw(rng).positions, same.positions)
+    assert source.served_ahead == 1
+
+
+def _daemon_check(queue) -> None:
+    source = SceneSource("merge")
+    source.prefetch(np.random.default_rng(0))
+    queue.put((prefetch.available(), source.recording_ahead))
+
+
+def test_a_daemonic_process_records_nothing_ahead():
+    # SB3's SubprocVecEnv and Gymnasium's AsyncVectorEnv run envs in daemonic processes,
+    # which may not have children (and whose cores are taken).
+    context = multiprocessing.get_context("spawn")
+    queue = context.Queue()
+    worker = context.Process(target=_daemon_check, args=(queue,), daemon=True)
+    worker.start()
+    assert queue.get(timeout=120) == (False, False)
+    worker.join()
