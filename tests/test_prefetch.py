@@ -5,6 +5,7 @@ its draw asks for."""
 from __future__ import annotations
 
 import multiprocessing
+import time
 
 import numpy as np
 import pytest
@@ -20,6 +21,8 @@ def _run(env: CounterSceneEnv, resets: list[int | None], steps: int = 8) -> list
     """Observations of consecutive episodes (``None``: reset without a seed)."""
     out = []
     for seed in resets:
+        while seed is None and env.unwrapped.recording_ahead:  # taken only once recorded
+            time.sleep(0.01)
         obs, _ = env.reset(seed=seed)
         out.append(obs)
         for _ in range(steps):
@@ -73,3 +76,16 @@ def test_a_daemonic_process_records_nothing_ahead():
     worker.start()
     assert queue.get(timeout=120) == (False, False)
     worker.join()
+
+
+def test_a_stress_runs_scenes_recorded_ahead_are_its_scenes_in_order():
+    # Intersection seed 0 is rejected (two cars crash): the seeds scanned and skipped are the same.
+    from counterscene_env.scene.sources import scenes_for
+
+    inline = list(scenes_for("intersection", 3, 0))
+    ahead = list(scenes_for("intersection", 3, 0, ahead=4))
+    assert [s.metadata["seed"] for s in ahead] == [s.metadata["seed"] for s in inline]
+    assert [s.metadata["rejected_seeds"] for s in ahead] == [[0], [], []]
+    for a, b in zip(ahead, inline, strict=True):
+        np.testing.assert_array_equal(a.positions, b.positions)
+        assert a.metadata["rejected_seeds"] == b.metadata["rejected_seeds"]

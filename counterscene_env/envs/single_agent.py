@@ -40,8 +40,8 @@ from counterscene_env.envs.spaces import (
     bounded_space,
     check_action,
 )
-from counterscene_env.envs.threads import one_thread_if
 from counterscene_env.scene.core import Scene
+from counterscene_env.scene.prefetch import one_thread_if
 from counterscene_env.scene.sources import SceneSource
 from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.sim.state import Episode
@@ -211,6 +211,17 @@ class CounterSceneEnv(AbstractEnv):
         episode starts at the next ``reset``."""
         self.loop, self.slot, self.shared = loop, int(slot), True
 
+    def close(self) -> None:
+        """highway-env's ``close``; a scene being recorded ahead for this env is dropped."""
+        self._source.drop_prefetch()
+        super().close()
+
+    @property
+    def recording_ahead(self) -> bool:
+        """Whether the scene of this env's next reset is being recorded in the background
+        now (``prefetch_scenes``; ``scene/prefetch.py``)."""
+        return self._source.recording_ahead
+
     @property
     def episode(self) -> Episode:
         """This env's current closed-loop episode (a public record of ``sim/``)."""
@@ -283,7 +294,7 @@ class CounterSceneEnv(AbstractEnv):
         self.controlled_vehicles = self.mirror.egos
         self.traffic = self.mirror.traffic
         self._sync_road()
-        if config["prefetch_scenes"] and not self.shared:
+        if config["prefetch_scenes"]:
             self._source.prefetch(self.np_random)  # the next reset's scene, if it draws one
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
@@ -367,7 +378,7 @@ class CounterSceneEnv(AbstractEnv):
         while True:
             states = np.full((B, E, 4), np.nan)
             states[self.slot] = self.advance_egos()
-            with one_thread_if(self._source.recording_ahead):
+            with one_thread_if(self.recording_ahead):
                 self.loop.step(ego_states=states, only=only)
             if self.end_frame():
                 break

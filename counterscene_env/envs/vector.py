@@ -38,6 +38,7 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array,
 
 from counterscene_env.envs.config import check_episode_inputs
 from counterscene_env.envs.single_agent import CounterSceneEnv
+from counterscene_env.scene.prefetch import one_thread_if
 from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.world_model.checkpoint import shared_model
 
@@ -287,7 +288,8 @@ class CounterSceneVectorEnv(VectorEnv):
             for i in running:
                 states[i] = self.envs[i].advance_egos()
                 only[i] = True
-            self.loop.step(ego_states=states, only=only)
+            with one_thread_if(any(env.recording_ahead for env in self.envs)):
+                self.loop.step(ego_states=states, only=only)
             running = [i for i in running if not self.envs[i].end_frame()]
 
     def _batch_obs(self) -> Any:

@@ -1,81 +1,194 @@
-"""Recording the next episode's scene in a background process while this episode runs.
+"""Recording the next episodes' scenes in a background process while this episode runs.
 
 A generated road's episode starts by recording 13 s of highway-env traffic (the scene's
-factual log): Python that holds one core for about 0.2 s, as long as a whole episode of
-random actions (docs/performance.md). The scene is a function of its road and seed alone
-(``scene.highway.generate``), so it can be recorded anywhere and ahead of time: one worker
-process per Python process records the scene the next reset will draw, and that reset takes
-it if the draw matches, or records it itself if it does not (an env re-seeded by
-``reset(seed=...)``, an episode that consumed the env's generator). Either way the episode
-is the one the seed gives.
+factual log): Python that holds one core for 0.2-0.4 s, as long as a whole episode of random
+actions (docs/performance.md). A scene is a function of its road and seed alone
+(``scene.highway.generate``), so it can be recorded anywhere and ahead of time:
 
-The worker is started on first use with ``forkserver`` (``spawn`` where there is none; a fork
-of a process with torch's threads running is unsafe) and shared by every env of the process.
-A daemonic process (the workers of SB3's ``SubprocVecEnv`` and Gymnasium's
-``AsyncVectorEnv``) may not have children, and its cores are spoken for: there nothing is
-recorded ahead. The scene comes back pickled from our own child process, which is trusted.
+- :class:`Prefetch` records the scene an env's next reset will draw; that reset takes it if
+  the draw matches, or records the scene itself if it does not (an env re-seeded by
+  ``reset(seed=...)``, an episode that used the env's generator). The episode is the one the
+  seed gives either way.
+- :func:`safe_scenes_ahead` gives a stress run's scenes in order, the next ones recorded
+  while a batch runs.
+
+The recording runs in one child process per Python process (``scene/recorder_process.py``),
+shared by every env and started on first use. Not in a daemonic process (the workers of SB3's
+``SubprocVecEnv`` and Gymnasium's ``AsyncVectorEnv``: their cores are spoken for) and not on
+Windows (the pipe is polled with ``select``): there every scene is recorded when it is needed.
 """
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import multiprocessing
-from concurrent.futures import Future, ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
+import os
+from collections import deque
+from collections.abc import Iterator
 
 from counterscene_env.scene.core import Scene
+from counterscene_env.scene.recorder_process import Recorder
 
-_POOL: ProcessPoolExecutor | None = None
+#: Seeds ``generate`` tries before it gives up (its ``max_attempts``).
+MAX_ATTEMPTS = 20
+
+_RECORDER: Recorder | None = None
 
 
 def available() -> bool:
-    """Whether this process may record in the background (it is not daemonic)."""
-    return not multiprocessing.current_process().daemon
+    """Whether this process may record in the background (module docstring)."""
+    return os.name == "posix" and not multiprocessing.current_process().daemon
 
 
-def _pool() -> ProcessPoolExecutor:
-    global _POOL
-    if _POOL is None:
-        methods = multiprocessing.get_all_start_methods()
-        context = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
-        _POOL = ProcessPoolExecutor(max_workers=1, mp_context=context)
-    return _POOL
+def _recorder() -> Recorder:
+    """The process's recorder, (re)started if it has none or the last one died."""
+    global _RECORDER
+    if _RECORDER is None or _RECORDER.broken:
+        if _RECORDER is None:
+            atexit.register(_close)
+        else:
+            _RECORDER.close()
+        _RECORDER = Recorder()
+    return _RECORDER
 
 
-def _record(road: str, seed: int) -> Scene:
-    from counterscene_env.scene.highway import generate
+def _close() -> None:
+    if _RECORDER is not None:
+        _RECORDER.close()
 
-    return generate(road, seed)
+
+def _record_here(road: str, seed: int) -> Scene | None:
+    """Exactly this seed's recording in this process, or None if it is rejected."""
+    from counterscene_env.scene.highway import RejectedScene, record
+
+    try:
+        return record(road, seed)
+    except RejectedScene:
+        return None
 
 
 class Prefetch:
-    """One scene being recorded ahead: road ``road`` from seed ``seed`` (``generate``'s)."""
+    """``generate(road, seed)``'s scene, recorded ahead: ``seed``, then ``seed + 1`` and on
+    while they are rejected, one at a time, each sent when its predecessor's answer is seen."""
 
     def __init__(self, road: str, seed: int) -> None:
         self.key = (road, int(seed))
-        self.future: Future = _pool().submit(_record, road, int(seed))
+        self.recorder = _recorder()
+        self.seed = int(seed)
+        self.ticket = self.recorder.submit(road, self.seed)
+        self.rejected: list[int] = []
+        self.scene: Scene | None = None
+        self.failed = False  # given up: the caller records the scene itself
 
     @property
     def running(self) -> bool:
-        """Whether the worker is still recording it (it then holds a core)."""
-        return not self.future.done()
+        """Whether the scene is still being recorded (a core is busy with it)."""
+        self._advance(wait=False)
+        return self.scene is None and not self.failed
 
     def take(self, road: str, seed: int) -> Scene | None:
-        """The scene if it is the one asked for and was recorded; None otherwise (the caller
-        records it). Waits for a recording in progress only if it is the one asked for."""
-        if self.key != (road, int(seed)):
-            self.future.cancel()
+        """The scene if it is the one asked for and its recording has begun (waiting for it
+        to end); None otherwise: the caller records it (a recording still queued behind
+        other envs' would take longer to wait for)."""
+        self._advance(wait=False)
+        wanted = self.key == (road, int(seed))
+        if not wanted or (self.scene is None and not self.recorder.started(self.ticket)):
+            self.cancel()
             return None
-        try:
-            return self.future.result()
-        except BrokenProcessPool:  # the worker died: the next prefetch starts a new one
-            _discard_pool()
-            return None
-        except Exception:
-            return None  # it again, with its own traceback)
+        self._advance(wait=True)
+        return self.scene
+
+    def cancel(self) -> None:
+        """Withdraw the recording (the child drops it if it has not begun)."""
+        if self.scene is None and not self.failed:
+            self.recorder.withdraw(self.ticket)
+        self.failed = self.scene is None
+
+    def __del__(self) -> None:  # an env dropped without close(): its recording is not needed
+        with contextlib.suppress(Exception):
+            self.cancel()
+
+    def _advance(self, wait: bool) -> None:
+        while self.scene is None and not self.failed:
+            if not (wait or self.recorder.done(self.ticket)):
+                return
+            status, scene = self.recorder.result(self.ticket)
+            if status != "ok":  # the child died or failed: the caller's call shows why
+                self.failed = True
+            elif scene is not None:
+                scene.metadata["rejected_seeds"] = self.rejected
+                self.scene = scene
+            elif len(self.rejected) + 1 == MAX_ATTEMPTS:
+                self.failed = True  # generate's error, raised by the caller's own call
+            else:
+                self.rejected.append(self.seed)
+                self.seed += 1
+                self.ticket = self.recorder.submit(self.key[0], self.seed)
 
 
-def _discard_pool() -> None:
-    global _POOL
-    if _POOL is not None:
-        _POOL.shutdown(wait=False, cancel_futures=True)
-        _POOL = None
+def safe_scenes_ahead(road: str, seed: int, count: int, ahead: int) -> Iterator[Scene]:
+    """The first ``count`` safe scenes of ``road`` from ``seed``, exactly those of calling
+    ``generate`` from ``seed`` and then from each kept scene's seed + 1 (``scenes_for``), with
+    up to ``ahead`` seeds queued for the background process before they are asked for.
+
+    Raises:
+        RuntimeError: ``generate``'s, when ``MAX_ATTEMPTS`` seeds in a row are rejected.
+    """
+    from counterscene_env.scene.highway import generate
+
+    recorder: Recorder | None = _recorder()
+    pending: deque[tuple[int, int]] = deque()  # (seed, ticket)
+    following, rejected, kept = seed, [], 0
+    try:
+        while kept < count:
+            while recorder is not None and len(pending) < max(ahead, 1):
+                pending.append((following, recorder.submit(road, following)))
+                following += 1
+            if pending:
+                k, ticket = pending.popleft()
+                status, scene = recorder.result(ticket)
+                if status != "ok":  # from here on, every seed is recorded in this process
+                    for _, left in pending:
+                        recorder.withdraw(left)
+                    recorder, following = None, k + 1
+                    pending.clear()
+                    scene = _record_here(road, k)
+            else:
+                k, following = following, following + 1
+                scene = _record_here(road, k)
+            if scene is None:
+                rejected.append(k)
+                if len(rejected) == MAX_ATTEMPTS:  # generate's own error, raised by it
+                    generate(road, rejected[0], max_attempts=MAX_ATTEMPTS)
+                continue
+            scene.metadata["rejected_seeds"] = rejected
+            rejected, kept = [], kept + 1
+            yield scene
+    finally:
+        if recorder is not None:
+            for _, ticket in pending:
+                recorder.withdraw(ticket)
+
+
+@contextlib.contextmanager
+def one_thread_if(busy: bool) -> Iterator[None]:
+    """Run the body on one torch thread if ``busy`` (a recording in progress), torch's
+    setting again after.
+
+    Replans run torch's intra-op threads, two on a 2-core machine; a recording holds a core.
+    Both at once, each thread waits for the other at every small operation: on 2 cores, 41
+    env steps/s with two torch threads and a recording ahead, 58 with one
+    (docs/performance.md). The results do not depend on the thread count
+    (``tests/test_prefetch.py``)."""
+    import torch
+
+    if not busy or torch.get_num_threads() == 1:
+        yield
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

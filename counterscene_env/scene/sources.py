@@ -154,6 +154,12 @@ class SceneSource:
         if spec in Scenario.values():
             self._ahead = prefetch.Prefetch(spec, k)
 
+    def drop_prefetch(self) -> None:
+        """Withdraw a recording made ahead that no draw has taken yet."""
+        if self._ahead is not None:
+            self._ahead.cancel()
+            self._ahead = None
+
     @property
     def recording_ahead(self) -> bool:
         """Whether a background process is recording a scene for this source right now."""
@@ -181,7 +187,9 @@ class SceneSource:
         return self._cache[spec]
 
 
-def scenes_for(spec: str, episodes: int, seed: int, egos: int = 1) -> Iterator[Scene]:
+def scenes_for(
+    spec: str, episodes: int, seed: int, egos: int = 1, ahead: int = 0
+) -> Iterator[Scene]:
     """The scene of each of ``episodes`` episodes of a stress run.
 
     A generated road gives the first ``episodes`` safe seeds from ``seed``, exactly the scenes
@@ -190,6 +198,9 @@ def scenes_for(spec: str, episodes: int, seed: int, egos: int = 1) -> Iterator[S
     scenes seats ego choice ``k mod min(egos, choices)`` of each (``scene.egos.ego_choices``:
     choice 0 is the recorded ego), so ``egos = 1`` replays every scene with its own ego. In a
     mixture ``a,b,...`` of n specs, episode i is the ``i // n``-th scene of part ``i % n``.
+    With ``ahead > 0`` a generated road's next seeds, up to ``ahead``, are recorded in a
+    background process before they are asked for (``scene/prefetch.py``; not in a daemonic
+    process): the same scenes, sooner.
     """
     if egos < 1:
         raise ValueError(f"egos must be >= 1, got {egos}")
@@ -197,9 +208,15 @@ def scenes_for(spec: str, episodes: int, seed: int, egos: int = 1) -> Iterator[S
     if len(parts) > 1:
         n = len(parts)
         # Part j serves episodes j, j + n, ...: ceil((episodes - j) / n) of them.
-        sources = [scenes_for(p, -(-(episodes - j) // n), seed, egos) for j, p in enumerate(parts)]
+        sources = [
+            scenes_for(p, -(-(episodes - j) // n), seed, egos, -(-ahead // n))
+            for j, p in enumerate(parts)
+        ]
         for i in range(episodes):
             yield next(sources[i % n])
+        return
+    if spec in Scenario.values() and ahead > 0 and prefetch.available():
+        yield from prefetch.safe_scenes_ahead(spec, seed, episodes, ahead)
         return
     if spec in Scenario.values():
         from counterscene_env.scene.highway import generate

@@ -20,7 +20,8 @@ from counterscene_env import metrics
 from counterscene_env.config import Scenario
 from counterscene_env.planners import Planner, make_planner
 from counterscene_env.scene.core import Scene
-from counterscene_env.scene.sources import scenes_for
+from counterscene_env.scene.prefetch import available, one_thread_if
+from counterscene_env.scene.sources import is_generated, scenes_for
 from counterscene_env.sim import ClosedLoop
 from counterscene_env.stress.config import StressConfig
 from counterscene_env.stress.log import EpisodeLog
@@ -28,13 +29,14 @@ from counterscene_env.world_model.checkpoint import load_model
 from counterscene_env.world_model.model import WorldModel
 
 
-def _remaining_scenes(config: StressConfig, done: Sequence[dict]) -> Iterator[Scene]:
+def _remaining_scenes(config: StressConfig, done: Sequence[dict], ahead: int) -> Iterator[Scene]:
     """The scenes of episodes ``len(done)`` on: a generated road restarts from the seed after
     the last done scene's (no scene is generated twice), a stored source skips ahead."""
     k = len(done)
     if config.scenario in Scenario.values() and k:
-        return scenes_for(config.scenario, config.episodes - k, done[-1]["scene_seed"] + 1)
-    scenes = scenes_for(config.scenario, config.episodes, config.seed, config.egos)
+        seed = done[-1]["scene_seed"] + 1
+        return scenes_for(config.scenario, config.episodes - k, seed, ahead=ahead)
+    scenes = scenes_for(config.scenario, config.episodes, config.seed, config.egos, ahead)
     return itertools.islice(scenes, k, None)
 
 
@@ -46,16 +48,20 @@ def first_to_run(config: StressConfig, done: Sequence[dict]) -> int:
     return len(done) - len(done) % config.batch
 
 
-def chunks(config: StressConfig, done: Sequence[dict]) -> Iterator[tuple[int, list[Scene]]]:
+def chunks(
+    config: StressConfig, done: Sequence[dict], ahead: int = 0
+) -> Iterator[tuple[int, list[Scene]]]:
     """The batches still to run after the ``done`` episodes, in order: ``(first episode
     index, its scenes)``, each of ``config.batch`` episodes (the last may be
     shorter). Batch boundaries fall at the same episodes in every run of a config, so a batch
     cut short by a kill (some of its episodes recorded) is run again whole: the episodes still
     missing then come from a batch of the uninterrupted run's composition (the recorded ones
-    are kept, :class:`Progress`). Never more scenes are drawn than the batches need."""
+    are kept, :class:`Progress`). Never more scenes are drawn than the batches need; with
+    ``ahead > 0``, up to ``ahead`` generated seeds are recorded in the background before they
+    are (``scene.sources.scenes_for``)."""
     index = first_to_run(config, done)
     size = config.batch
-    scenes = _remaining_scenes(config, done[:index])
+    scenes = _remaining_scenes(config, done[:index], ahead)
     while index < config.episodes:
         chunk = list(itertools.islice(scenes, min(size, config.episodes - index)))
         if not chunk:
@@ -243,9 +249,13 @@ def drive(
     """Every batch still to run (:func:`chunks`), one after the other, through ``runner``;
     the records of all episodes of the run, in order."""
     tally = Progress(config, log, progress)
+    # The next batch's scenes are recorded in the background while this one runs, and the
+    # batch then runs on one torch thread (scene/prefetch.py).
+    ahead = 2 * config.batch if is_generated(config.scenario) and available() else 0
     try:
-        for first, scenes in chunks(config, tally.records):
-            tally.add(runner(first, scenes))
+        for first, scenes in chunks(config, tally.records, ahead):
+            with one_thread_if(ahead > 0):
+                tally.add(runner(first, scenes))
     finally:
         tally.close()
     return tally.records
