@@ -259,7 +259,8 @@ class CounterSceneEnv(AbstractEnv):
     def _reset(self) -> None:
         config = self.config
         scene = self._reset_options.get("scene")
-        if scene is None:
+        drawn = scene is None
+        if drawn:
             scene = self._source.draw(self.np_random)
         egos = pick_egos(scene, config["controlled_vehicles"])
         model = shared_model(config["model"])
@@ -294,8 +295,8 @@ class CounterSceneEnv(AbstractEnv):
         self.controlled_vehicles = self.mirror.egos
         self.traffic = self.mirror.traffic
         self._sync_road()
-        if config["prefetch_scenes"]:
-            self._source.prefetch(self.np_random)  # the next reset's scene, if it draws one
+        if config["prefetch_scenes"] and drawn:  # the next reset's scene, if it draws too
+            self._source.prefetch(self.np_random)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         """highway-env's step, after the action is checked: a refused action (wrong type,

@@ -130,33 +130,23 @@ class Prefetch:
 def safe_scenes_ahead(road: str, seed: int, count: int, ahead: int) -> Iterator[Scene]:
     """The first ``count`` safe scenes of ``road`` from ``seed``, exactly those of calling
     ``generate`` from ``seed`` and then from each kept scene's seed + 1 (``scenes_for``), with
-    up to ``ahead`` seeds queued for the background process before they are asked for.
+    up to ``ahead`` seeds queued for the background process before they are asked for. A seed
+    asked for before the process has begun it is recorded here instead (while the process
+    starts, or is busy with the one before), so both record at once.
 
     Raises:
         RuntimeError: ``generate``'s, when ``MAX_ATTEMPTS`` seeds in a row are rejected.
     """
     from counterscene_env.scene.highway import generate
 
-    recorder: Recorder | None = _recorder()
-    pending: deque[tuple[int, int]] = deque()  # (seed, ticket)
-    following, rejected, kept = seed, [], 0
+    seeds = _SeedsAhead(road, seed)
+    rejected: list[int] = []
+    kept = 0
     try:
         while kept < count:
-            while recorder is not None and len(pending) < max(ahead, 1):
-                pending.append((following, recorder.submit(road, following)))
-                following += 1
-            if pending:
-                k, ticket = pending.popleft()
-                status, scene = recorder.result(ticket)
-                if status != "ok":  # from here on, every seed is recorded in this process
-                    for _, left in pending:
-                        recorder.withdraw(left)
-                    recorder, following = None, k + 1
-                    pending.clear()
-                    scene = _record_here(road, k)
-            else:
-                k, following = following, following + 1
-                scene = _record_here(road, k)
+            # No further ahead than the scenes still wanted (a rejection asks for one more).
+            seeds.queue(max(min(ahead, count - kept), 1))
+            k, scene = seeds.next()
             if scene is None:
                 rejected.append(k)
                 if len(rejected) == MAX_ATTEMPTS:  # generate's own error, raised by it
@@ -166,9 +156,49 @@ def safe_scenes_ahead(road: str, seed: int, count: int, ahead: int) -> Iterator[
             rejected, kept = [], kept + 1
             yield scene
     finally:
-        if recorder is not None:
-            for _, ticket in pending:
-                recorder.withdraw(ticket)
+        seeds.withdraw()
+
+
+class _SeedsAhead:
+    """Consecutive seeds of one road, each recorded by the background process or here."""
+
+    def __init__(self, road: str, seed: int) -> None:
+        self.road, self.following = road, seed
+        self.recorder: Recorder | None = _recorder()
+        self.pending: deque[tuple[int, int]] = deque()  # (seed, ticket)
+
+    def queue(self, depth: int) -> None:
+        """Send seeds to the process until ``depth`` are pending."""
+        while self.recorder is not None and len(self.pending) < depth:
+            self.pending.append((self.following, self.recorder.submit(self.road, self.following)))
+            self.following += 1
+
+    def next(self) -> tuple[int, Scene | None]:
+        """The next seed and its scene (None: rejected)."""
+        if not self.pending:  # no process (it died): record here
+            k, self.following = self.following, self.following + 1
+            return k, _record_here(self.road, k)
+        k, ticket = self.pending.popleft()
+        if not self.recorder.started(ticket):  # record it here meanwhile
+            self.recorder.withdraw(ticket)
+            return k, _record_here(self.road, k)
+        status, scene = self.recorder.result(ticket)
+        if status != "ok":  # from here on, every seed is recorded in this process
+            self.withdraw()
+            self.recorder, self.following = None, k + 1
+            scene = _record_here(self.road, k)
+        return k, scene
+
+    def withdraw(self) -> None:
+        if self.recorder is not None:
+            for _, ticket in self.pending:
+                self.recorder.withdraw(ticket)
+        self.pending.clear()
+
+
+def recording() -> bool:
+    """Whether this process's background recorder has recordings queued or in progress."""
+    return _RECORDER is not None and _RECORDER.busy
 
 
 @contextlib.contextmanager

@@ -1,27 +1,35 @@
-"""The background process that records highway-env scenes, and its end of the pipe.
+"""The background process that records highway-env scenes, and the parent's end of its pipes.
 
 One child per Python process, started on first use as ``python -m
 counterscene_env.scene.recorder_process``: a fresh interpreter that imports this package and
 nothing of the user's (``multiprocessing``'s ``spawn`` and ``forkserver`` would re-run a
 script's top level without a ``__main__`` guard in the child; ``fork`` copies a process whose
-torch threads may hold locks). It reads requests ``(seed list position, road, seed)`` from its
-stdin and answers each, in order, on its stdout: ``("ok", scene or None)`` (None: the seed
-was rejected) or ``("error", message)``. Messages are pickles behind an 8-byte length; the
-parent only unpickles what its own child wrote.
+torch threads may hold locks).
 
-The parent keeps the queue (:class:`Recorder`): one request is in the child at a time, so a
-queued one can still be withdrawn, and the child is fed whenever the parent looks
-(``submit``, ``done``, ``result``).
+The protocol, pickles behind an 8-byte length on the child's stdin and stdout (the parent
+only unpickles what its own child wrote):
+
+- parent to child: ``("record", ticket, road, seed)`` (exactly this seed, ``highway.record``)
+  or ``("cancel", ticket)``;
+- child to parent: ``("start", ticket)`` when it begins one, then ``("done", ticket,
+  answer)`` with ``answer`` ``("ok", scene)``, ``("ok", None)`` (the seed was rejected),
+  ``("error", message)`` or ``("cancelled", None)`` (withdrawn before it began).
+
+The child keeps its own queue, in order, and reads every waiting message before it begins
+the next recording, so a withdrawn one is skipped. Every ticket sent gets exactly one
+``done``.
 """
 
 from __future__ import annotations
 
 import os
 import pickle
+import queue
 import select
 import struct
 import subprocess
 import sys
+import threading
 from collections import deque
 from typing import IO, Any
 
@@ -36,18 +44,29 @@ def _write(stream: IO[bytes], message: Any) -> None:
 
 def _read(stream: IO[bytes]) -> Any:
     """The next message; raises ``EOFError`` when the other end is gone."""
-    head = stream.read(_HEADER.size)
-    if len(head) < _HEADER.size:
-        raise EOFError("the other end of the pipe closed")
-    (size,) = _HEADER.unpack(head)
-    data = stream.read(size)
-    if len(data) < size:
-        raise EOFError("the other end of the pipe closed mid-message")
-    return pickle.loads(data)
+    (size,) = _HEADER.unpack(_read_exactly(stream, _HEADER.size))
+    return pickle.loads(_read_exactly(stream, size))
+
+
+def _read_exactly(stream: IO[bytes], size: int) -> bytes:
+    chunks, left = [], size
+    while left:
+        chunk = stream.read(left)
+        if not chunk:
+            raise EOFError("the other end of the pipe closed")
+        chunks.append(chunk)
+        left -= len(chunk)
+    return b"".join(chunks)
+
+
+def _waiting(stream: IO[bytes]) -> bool:
+    """Whether a message has begun to arrive on ``stream`` (unbuffered: nothing read ahead
+    where ``select`` cannot see it)."""
+    return bool(select.select([stream], [], [], 0)[0])
 
 
 class Recorder:
-    """The parent's handle on the child: tickets in submission order."""
+    """The parent's handle on the child (module docstring): tickets in submission order."""
 
     def __init__(self) -> None:
         env = {**os.environ, "OMP_NUM_THREADS": "1"}  # it runs no torch; keep it that way
@@ -56,73 +75,94 @@ class Recorder:
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             env=env,
+            bufsize=0,
         )
-        self.queued: deque[tuple[int, str, int]] = deque()  # not yet sent
-        self.sent: int | None = None  # the ticket in the child
-        self.results: dict[int, tuple[str, Any]] = {}
         self.next_ticket = 0
+        self.open: set[int] = set()  # sent, no ``done`` yet
+        self.begun: set[int] = set()
+        self.withdrawn: set[int] = set()
+        self.results: dict[int, tuple[str, Any]] = {}
         self.broken = False
+        # A scene is larger than a pipe's buffer: a thread takes every answer off the pipe
+        # as it comes, or the child would wait, mid-write, for the parent to look.
+        self.inbox: queue.SimpleQueue = queue.SimpleQueue()
+        threading.Thread(target=self._drain, daemon=True).start()
+
+    def _drain(self) -> None:
+        try:
+            while True:
+                self.inbox.put(_read(self.child.stdout))
+        except (EOFError, OSError, pickle.UnpicklingError):
+            self.inbox.put(None)  # the child is gone
+
+    @property
+    def busy(self) -> bool:
+        """Whether recordings are queued or in progress."""
+        self._collect()
+        return bool(self.open) and not self.broken
 
     def submit(self, road: str, seed: int) -> int:
-        """Queue exactly this seed's recording (``highway.record``); its ticket."""
+        """Queue exactly this seed's recording; its ticket."""
         ticket = self.next_ticket
         self.next_ticket += 1
-        self.queued.append((ticket, road, int(seed)))
-        self._pump()
+        self._send(("record", ticket, road, int(seed)))
+        self.open.add(ticket)
         return ticket
 
     def started(self, ticket: int) -> bool:
         """Whether the child has begun (or finished) this ticket."""
-        self._pump()
-        return ticket in self.results or ticket == self.sent
+        self._collect()
+        return ticket in self.begun or ticket in self.results
 
     def done(self, ticket: int) -> bool:
-        self._pump()
+        self._collect()
         return ticket in self.results or self.broken
 
     def withdraw(self, ticket: int) -> None:
-        """Forget a ticket: dropped if still queued, its result discarded otherwise."""
-        self.queued = deque(q for q in self.queued if q[0] != ticket)
+        """Forget a ticket: skipped if the child has not begun it, its answer dropped."""
         self.results.pop(ticket, None)
-        if self.sent == ticket:
-            self.sent = -1 - ticket  # answered later, then dropped
-        self._pump()
+        if ticket in self.open:
+            self.withdrawn.add(ticket)
+            self._send(("cancel", ticket))
 
     def result(self, ticket: int) -> tuple[str, Any]:
-        """Wait for a ticket that has started; ``("ok", scene or None)``, ``("error",
-        message)``, or ``("broken", None)`` if the child died."""
+        """Wait for a ticket's answer: ``("ok", scene or None)``, ``("error", message)``, or
+        ``("broken", None)`` if the child died."""
         while ticket not in self.results and not self.broken:
-            self._receive(block=True)
+            self._receive()
         return self.results.pop(ticket, ("broken", None))
 
-    def _pump(self) -> None:
-        """Collect a finished answer without waiting, and send the next request."""
-        if self.sent is not None and not self.broken:
-            ready, _, _ = select.select([self.child.stdout], [], [], 0)
-            if ready:
-                self._receive(block=False)
-        if self.sent is None and self.queued and not self.broken:
-            ticket, road, seed = self.queued.popleft()
-            try:
-                _write(self.child.stdin, (road, seed))
-                self.sent = ticket
-            except OSError:
-                self._break()
-
-    def _receive(self, block: bool) -> None:
+    def _send(self, message: tuple) -> None:
+        if self.broken:
+            return
         try:
-            answer = _read(self.child.stdout)
-        except (EOFError, OSError, pickle.UnpicklingError):
+            _write(self.child.stdin, message)
+        except OSError:
+            self._break()
+
+    def _collect(self) -> None:
+        """Take every message already in, without waiting for more."""
+        while not self.broken and not self.inbox.empty():
+            self._receive()
+
+    def _receive(self) -> None:
+        message = self.inbox.get()
+        if message is None:
             self._break()
             return
-        if self.sent is not None and self.sent >= 0:
-            self.results[self.sent] = answer
-        self.sent = None
-        self._pump()
+        if message[0] == "start":
+            self.begun.add(message[1])
+            return
+        _, ticket, answer = message
+        self.open.discard(ticket)
+        self.begun.discard(ticket)
+        if ticket in self.withdrawn:
+            self.withdrawn.discard(ticket)
+        else:
+            self.results[ticket] = answer
 
     def _break(self) -> None:
         self.broken = True
-        self.queued.clear()
         self.child.kill()
 
     def close(self) -> None:
@@ -137,24 +177,38 @@ class Recorder:
 
 
 def _serve() -> None:
-    """The child: answer requests until the parent closes the pipe."""
+    """The child: answer requests in order until the parent closes the pipe."""
     from counterscene_env.scene.highway import RejectedScene, record
 
-    requests, answers = sys.stdin.buffer, sys.stdout.buffer
+    requests = os.fdopen(sys.stdin.fileno(), "rb", buffering=0)
+    answers = sys.stdout.buffer
     sys.stdout = sys.stderr  # anything printed must not reach the pipe
+    queue: deque[tuple[int, str, int]] = deque()
+    cancelled: set[int] = set()
     while True:
         try:
-            road, seed = _read(requests)
+            while not queue or _waiting(requests):  # wait only when there is nothing to do
+                message = _read(requests)
+                if message[0] == "cancel":
+                    cancelled.add(message[1])
+                else:
+                    queue.append(message[1:])
         except EOFError:
             return
+        ticket, road, seed = queue.popleft()
+        if ticket in cancelled:
+            cancelled.discard(ticket)
+            answer: tuple[str, Any] = ("cancelled", None)
+        else:
+            _write(answers, ("start", ticket))
+            try:
+                answer = ("ok", record(road, seed))
+            except RejectedScene:
+                answer = ("ok", None)
+            except Exception as exc:
+                answer = ("error", f"{type(exc).__name__}: {exc}")
         try:
-            answer: tuple[str, Any] = ("ok", record(road, seed))
-        except RejectedScene:
-            answer = ("ok", None)
-        except Exception as exc:
-            answer = ("error", f"{type(exc).__name__}: {exc}")
-        try:
-            _write(answers, answer)
+            _write(answers, ("done", ticket, answer))
         except OSError:  # the parent is gone
             return
 

@@ -20,7 +20,7 @@ from counterscene_env import metrics
 from counterscene_env.config import Scenario
 from counterscene_env.planners import Planner, make_planner
 from counterscene_env.scene.core import Scene
-from counterscene_env.scene.prefetch import available, one_thread_if
+from counterscene_env.scene.prefetch import available, one_thread_if, recording
 from counterscene_env.scene.sources import is_generated, scenes_for
 from counterscene_env.sim import ClosedLoop
 from counterscene_env.stress.config import StressConfig
@@ -249,13 +249,12 @@ def drive(
     """Every batch still to run (:func:`chunks`), one after the other, through ``runner``;
     the records of all episodes of the run, in order."""
     tally = Progress(config, log, progress)
-    # The next batch's scenes are recorded in the background while this one runs, and the
-    # batch then runs on one torch thread (scene/prefetch.py).
+    # The next batch's scenes are recorded in the background while this one runs
+    # (scene/prefetch.py; play_batch steps on one torch thread meanwhile).
     ahead = 2 * config.batch if is_generated(config.scenario) and available() else 0
     try:
         for first, scenes in chunks(config, tally.records, ahead):
-            with one_thread_if(ahead > 0):
-                tally.add(runner(first, scenes))
+            tally.add(runner(first, scenes))
     finally:
         tally.close()
     return tally.records
@@ -317,7 +316,8 @@ def play_batch(
                 states[b] = planner.next_state(state)
             else:
                 actions[b] = planner.act(state)
-        loop.step(actions, states)
+        with one_thread_if(recording()):  # a scene recorded in the background holds a core
+            loop.step(actions, states)
         if after is not None:
             after(stepped)
 
