@@ -57,6 +57,8 @@ def test_a_recording_ahead_is_taken_only_for_the_draw_it_was_made_for():
     assert source.served_ahead == 0
     source.prefetch(rng)
     same = SceneSource("merge").draw(np.random.default_rng(0))
+    while source.recording_ahead:  # taken once begun; waiting makes the test timing-free
+        time.sleep(0.01)
     np.testing.assert_array_equal(source.draw(rng).positions, same.positions)
     assert source.served_ahead == 1
 
@@ -89,3 +91,23 @@ def test_a_stress_runs_scenes_recorded_ahead_are_its_scenes_in_order():
     for a, b in zip(ahead, inline, strict=True):
         np.testing.assert_array_equal(a.positions, b.positions)
         assert a.metadata["rejected_seeds"] == b.metadata["rejected_seeds"]
+
+
+def test_a_recorder_process_that_died_costs_nothing_but_time():
+    """Killed mid-way, the background process's scene is recorded here instead, the same; the
+    next recording ahead starts a new process."""
+    source = SceneSource("merge")
+    rng = np.random.default_rng(5)
+    expected = SceneSource("merge").draw(np.random.default_rng(5))
+    source.prefetch(rng)
+    prefetch._RECORDER.child.kill()
+    prefetch._RECORDER.child.wait()
+    np.testing.assert_array_equal(source.draw(rng).positions, expected.positions)
+    assert source.served_ahead == 0
+    after = SceneSource("merge").draw(np.random.default_rng(6))
+    rng = np.random.default_rng(6)
+    source.prefetch(rng)
+    while source.recording_ahead:  # the new process starts, then records
+        time.sleep(0.01)
+    np.testing.assert_array_equal(source.draw(rng).positions, after.positions)
+    assert source.served_ahead == 1
