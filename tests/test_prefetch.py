@@ -5,6 +5,7 @@ its draw asks for."""
 from __future__ import annotations
 
 import multiprocessing
+import sys
 import time
 
 import numpy as np
@@ -111,3 +112,20 @@ def test_a_recorder_process_that_died_costs_nothing_but_time():
         time.sleep(0.01)
     np.testing.assert_array_equal(source.draw(rng).positions, after.positions)
     assert source.served_ahead == 1
+
+
+def test_where_the_recorder_process_cannot_start_every_scene_is_recorded_here(monkeypatch):
+    monkeypatch.setattr(prefetch, "_RECORDER", None)
+    monkeypatch.setattr(prefetch, "_UNAVAILABLE", [])
+    monkeypatch.setattr(sys, "executable", "/bin/false")  # starts, and exits with 1 at once
+    source = SceneSource("merge")
+    expected = SceneSource("merge").draw(np.random.default_rng(2))
+    rng = np.random.default_rng(2)
+    with pytest.warns(RuntimeWarning, match="cannot be recorded in the background"):
+        for _ in range(3):  # the first process fails; no second one is started
+            source.prefetch(np.random.default_rng(2))
+            while source.recording_ahead:
+                time.sleep(0.01)
+            np.testing.assert_array_equal(source.draw(rng).positions, expected.positions)
+            rng = np.random.default_rng(2)
+    assert not prefetch.available() and source.served_ahead == 0

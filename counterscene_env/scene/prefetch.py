@@ -24,6 +24,7 @@ import atexit
 import contextlib
 import multiprocessing
 import os
+import warnings
 from collections import deque
 from collections.abc import Iterator
 
@@ -34,23 +35,47 @@ from counterscene_env.scene.recorder_process import Recorder
 MAX_ATTEMPTS = 20
 
 _RECORDER: Recorder | None = None
+#: Set when the child process cannot start here: every scene is then recorded in-process.
+_UNAVAILABLE: list[str] = []
 
 
 def available() -> bool:
     """Whether this process may record in the background (module docstring)."""
-    return os.name == "posix" and not multiprocessing.current_process().daemon
+    posix = os.name == "posix"
+    return posix and not multiprocessing.current_process().daemon and not _UNAVAILABLE
 
 
-def _recorder() -> Recorder:
-    """The process's recorder, (re)started if it has none or the last one died."""
+def _recorder() -> Recorder | None:
+    """The process's recorder, (re)started if it has none or the last one died; None if one
+    cannot be started here (said once, on stderr)."""
     global _RECORDER
+    if _UNAVAILABLE:
+        return None
+    if _RECORDER is not None and _RECORDER.failed_to_start:
+        _RECORDER.close()
+        _give_up(f"its process exited with code {_RECORDER.child.returncode} at start")
+        return None
     if _RECORDER is None or _RECORDER.broken:
         if _RECORDER is None:
             atexit.register(_close)
         else:
             _RECORDER.close()
-        _RECORDER = Recorder()
+        try:
+            _RECORDER = Recorder()
+        except OSError as exc:
+            _give_up(f"{type(exc).__name__}: {exc}")
+            return None
     return _RECORDER
+
+
+def _give_up(why: str) -> None:
+    _UNAVAILABLE.append(why)
+    warnings.warn(
+        f"counterscene: scenes cannot be recorded in the background ({why}); each is "
+        "recorded when it is needed",
+        RuntimeWarning,
+        stacklevel=3,
+    )
 
 
 def _close() -> None:
@@ -76,10 +101,10 @@ class Prefetch:
         self.key = (road, int(seed))
         self.recorder = _recorder()
         self.seed = int(seed)
-        self.ticket = self.recorder.submit(road, self.seed)
         self.rejected: list[int] = []
         self.scene: Scene | None = None
-        self.failed = False  # given up: the caller records the scene itself
+        self.failed = self.recorder is None  # given up: the caller records the scene itself
+        self.ticket = -1 if self.recorder is None else self.recorder.submit(road, self.seed)
 
     @property
     def running(self) -> bool:
@@ -92,7 +117,7 @@ class Prefetch:
         to end); None otherwise: the caller records it (a recording still queued behind
         other envs' would take longer to wait for)."""
         self._advance(wait=False)
-        wanted = self.key == (road, int(seed))
+        wanted = self.key == (road, int(seed)) and not self.failed
         if not wanted or (self.scene is None and not self.recorder.started(self.ticket)):
             self.cancel()
             return None

@@ -22,6 +22,7 @@ the next recording, so a withdrawn one is skipped. Every ticket sent gets exactl
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pickle
 import queue
@@ -69,7 +70,9 @@ class Recorder:
     """The parent's handle on the child (module docstring): tickets in submission order."""
 
     def __init__(self) -> None:
-        env = {**os.environ, "OMP_NUM_THREADS": "1"}  # it runs no torch; keep it that way
+        # It runs no torch (one thread, to be sure), and finds this package where we did.
+        path = os.pathsep.join(p for p in sys.path if p)
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": path}
         self.child = subprocess.Popen(
             [sys.executable, "-m", "counterscene_env.scene.recorder_process"],
             stdin=subprocess.PIPE,
@@ -83,6 +86,7 @@ class Recorder:
         self.withdrawn: set[int] = set()
         self.results: dict[int, tuple[str, Any]] = {}
         self.broken = False
+        self.heard = False  # any message from the child yet
         # A scene is larger than a pipe's buffer: a thread takes every answer off the pipe
         # as it comes, or the child would wait, mid-write, for the parent to look.
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
@@ -150,6 +154,7 @@ class Recorder:
         if message is None:
             self._break()
             return
+        self.heard = True
         if message[0] == "start":
             self.begun.add(message[1])
             return
@@ -165,15 +170,23 @@ class Recorder:
         self.broken = True
         self.child.kill()
 
+    @property
+    def failed_to_start(self) -> bool:
+        """Whether the child ended by itself before saying anything (it could not start:
+        another will not either)."""
+        return self.broken and not self.heard and (self.child.poll() or 0) > 0
+
     def close(self) -> None:
-        try:
+        """End the child (it finishes the recording in hand) and let go of its pipes."""
+        with contextlib.suppress(OSError):
             self.child.stdin.close()
-        except OSError:
-            pass
         try:
             self.child.wait(timeout=5)
         except subprocess.TimeoutExpired:
             self.child.kill()
+            self.child.wait()
+        with contextlib.suppress(OSError):
+            self.child.stdout.close()  # the reader thread has seen the end by now
 
 
 def _serve() -> None:
