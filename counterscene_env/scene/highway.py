@@ -183,7 +183,7 @@ def _simulate(scenario: str, seed: int, cfg: GeneratorConfig) -> tuple[_Recorder
 def _reject_early(log: _Recorder, ego, vehicles, k: int) -> None:
     """Stop a recording as soon as :func:`_reject_unsafe` is bound to refuse it: the ego has
     left, or this frame's boxes overlap. A rejected seed used to cost its whole 13 s; about
-    one intersection seed in six is rejected (docs/performance.md). Overlaps are looked for
+    one intersection seed in five is rejected (docs/performance.md). Overlaps are looked for
     only once highway-env has flagged a crash (a car stays ``crashed``), and with the same
     arithmetic as the final check, which still runs: the scenes kept are the same."""
     if ego not in vehicles:
