@@ -261,6 +261,8 @@ class CounterSceneEnv(AbstractEnv):
         scene = self._reset_options.get("scene")
         drawn = scene is None
         if drawn:
+            if config["prefetch_scenes"]:
+                self._source.start_prefetching()  # it starts while this scene is recorded
             scene = self._source.draw(self.np_random)
         egos = pick_egos(scene, config["controlled_vehicles"])
         model = shared_model(config["model"])

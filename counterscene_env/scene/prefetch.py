@@ -68,6 +68,13 @@ def _recorder() -> Recorder | None:
     return _RECORDER
 
 
+def start() -> None:
+    """Start the background process now if it is not running (it takes about 0.75 s to be
+    ready: started before a reset records its own scene, it is ready by the next one)."""
+    if available():
+        _recorder()
+
+
 def _give_up(why: str) -> None:
     _UNAVAILABLE.append(why)
     warnings.warn(

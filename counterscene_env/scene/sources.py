@@ -144,6 +144,12 @@ class SceneSource:
             return scene
         return self._scenes(spec)[k]
 
+    def start_prefetching(self) -> None:
+        """Start the background process :meth:`prefetch` records in, if any spec is a
+        generated road (so that it is ready when the first recording ahead is asked for)."""
+        if any(spec in Scenario.values() for spec in self.specs):
+            prefetch.start()
+
     def prefetch(self, rng: np.random.Generator) -> None:
         """Start recording, in a background process, the scene that ``draw(rng)`` would give
         now (``rng`` is not advanced; ``scene/prefetch.py``). Nothing for a stored spec, in a
