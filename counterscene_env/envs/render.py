@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
+import gymnasium as gym
 import numpy as np
 import pygame
 from highway_env.envs.common.graphics import EnvViewer
@@ -134,6 +135,27 @@ class CounterSceneViewer(EnvViewer):
                 (centre[0] + d, centre[1] - d),
                 width,
             )
+
+
+def render_frame(env: Any) -> np.ndarray | None:
+    """A CounterScene env's ``render()``: highway-env's, drawn by :class:`CounterSceneViewer`.
+    ``[H, W, 3]`` uint8 in ``rgb_array`` mode; None in ``human`` mode (a window) and, with a
+    warning, without a render mode."""
+    if env.render_mode is None:
+        gym.logger.warn(
+            'render() without a render_mode: use gym.make("CounterScene-v0", '
+            'render_mode="rgb_array")'
+        )
+        return None
+    if env.viewer is None:
+        env.viewer = CounterSceneViewer(env)
+    env.enable_auto_render = True
+    env.viewer.display()
+    if not env.viewer.offscreen:
+        env.viewer.handle_events()
+    if env.render_mode == "rgb_array":
+        return env.viewer.get_image()
+    return None
 
 
 def save_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: int = 10) -> Path:

@@ -14,7 +14,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
-import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from highway_env.envs.common.abstract import AbstractEnv
@@ -32,7 +31,7 @@ from counterscene_env.envs.config import (
 from counterscene_env.envs.egos import pick_egos
 from counterscene_env.envs.mirror import Mirror, build_mirror, sync_mirror
 from counterscene_env.envs.outcome import ends_episode, reward_terms, step_info, weighted_reward
-from counterscene_env.envs.render import CounterSceneViewer, EpisodeView, view_of
+from counterscene_env.envs.render import EpisodeView, render_frame, view_of
 from counterscene_env.envs.spaces import (
     LANE_FREE_FEATURES,
     RowCappedKinematics,
@@ -261,9 +260,7 @@ class CounterSceneEnv(AbstractEnv):
         scene = self._reset_options.get("scene")
         drawn = scene is None
         if drawn:
-            if config["prefetch_scenes"]:
-                self._source.start_prefetching()  # it starts while this scene is recorded
-            scene = self._source.draw(self.np_random)
+            scene = self._source.draw(self.np_random, config["prefetch_scenes"])
         egos = pick_egos(scene, config["controlled_vehicles"])
         model = shared_model(config["model"])
         sim = self.sim_config
@@ -499,18 +496,4 @@ class CounterSceneEnv(AbstractEnv):
 
     # ------------------------------------------------------------------ rendering
     def render(self) -> np.ndarray | None:
-        if self.render_mode is None:
-            gym.logger.warn(
-                'render() without a render_mode: use gym.make("CounterScene-v0", '
-                'render_mode="rgb_array")'
-            )
-            return None
-        if self.viewer is None:
-            self.viewer = CounterSceneViewer(self)
-        self.enable_auto_render = True
-        self.viewer.display()
-        if not self.viewer.offscreen:
-            self.viewer.handle_events()
-        if self.render_mode == "rgb_array":
-            return self.viewer.get_image()
-        return None
+        return render_frame(self)

@@ -96,6 +96,10 @@ class GeneratorConfig:
             raise ValueError(f"sim_frequency must be a multiple of 10 Hz, got {self.sim_frequency}")
 
 
+#: Seeds :func:`generate` tries, by default, before it gives up.
+MAX_ATTEMPTS = 20
+
+
 class RejectedScene(RuntimeError):
     """A recording that may not serve as a factual log (collision, ego missing)."""
 
@@ -105,7 +109,7 @@ def generate(
     seed: int,
     duration: float | None = None,
     *,
-    max_attempts: int = 20,
+    max_attempts: int = MAX_ATTEMPTS,
     config: GeneratorConfig | None = None,
 ) -> Scene:
     """Record one safe factual scene of a highway-env scenario.

@@ -31,9 +31,6 @@ from collections.abc import Iterator
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.recorder_process import Recorder
 
-#: Seeds ``generate`` tries before it gives up (its ``max_attempts``).
-MAX_ATTEMPTS = 20
-
 _RECORDER: Recorder | None = None
 #: Set when the child process cannot start here: every scene is then recorded in-process.
 _UNAVAILABLE: list[str] = []
@@ -88,6 +85,13 @@ def _give_up(why: str) -> None:
 def _close() -> None:
     if _RECORDER is not None:
         _RECORDER.close()
+
+
+def _max_attempts() -> int:
+    """``generate``'s default number of seeds (highway-env is imported on first use only)."""
+    from counterscene_env.scene.highway import MAX_ATTEMPTS
+
+    return MAX_ATTEMPTS
 
 
 def _record_here(road: str, seed: int) -> Scene | None:
@@ -151,7 +155,7 @@ class Prefetch:
             elif scene is not None:
                 scene.metadata["rejected_seeds"] = self.rejected
                 self.scene = scene
-            elif len(self.rejected) + 1 == MAX_ATTEMPTS:
+            elif len(self.rejected) + 1 == _max_attempts():
                 self.failed = True  # generate's error, raised by the caller's own call
             else:
                 self.rejected.append(self.seed)
@@ -167,9 +171,9 @@ def safe_scenes_ahead(road: str, seed: int, count: int, ahead: int) -> Iterator[
     starts, or is busy with the one before), so both record at once.
 
     Raises:
-        RuntimeError: ``generate``'s, when ``MAX_ATTEMPTS`` seeds in a row are rejected.
+        RuntimeError: ``generate``'s, when its ``MAX_ATTEMPTS`` seeds in a row are rejected.
     """
-    from counterscene_env.scene.highway import generate
+    from counterscene_env.scene.highway import MAX_ATTEMPTS, generate
 
     seeds = _SeedsAhead(road, seed)
     rejected: list[int] = []

@@ -129,9 +129,13 @@ class SceneSource:
         #: Draws served by a recording made ahead (:meth:`prefetch`), this process.
         self.served_ahead = 0
 
-    def draw(self, rng: np.random.Generator) -> Scene:
+    def draw(self, rng: np.random.Generator, prefetching: bool = False) -> Scene:
         """One scene: pick a spec, then a fresh recording (generated) or a stored scene; the
-        recording :meth:`prefetch` made if it is this one."""
+        recording :meth:`prefetch` made if it is this one. ``prefetching``: the caller will
+        :meth:`prefetch` after this draw, so the background process is started first (it is
+        ready by then: it starts while this scene is recorded)."""
+        if prefetching and any(spec in Scenario.values() for spec in self.specs):
+            prefetch.start()
         spec, k = self._pick(rng)
         if spec in Scenario.values():
             ahead, self._ahead = self._ahead, None
@@ -143,12 +147,6 @@ class SceneSource:
                 scene = generate(spec, k)
             return scene
         return self._scenes(spec)[k]
-
-    def start_prefetching(self) -> None:
-        """Start the background process :meth:`prefetch` records in, if any spec is a
-        generated road (so that it is ready when the first recording ahead is asked for)."""
-        if any(spec in Scenario.values() for spec in self.specs):
-            prefetch.start()
 
     def prefetch(self, rng: np.random.Generator) -> None:
         """Start recording, in a background process, the scene that ``draw(rng)`` would give
