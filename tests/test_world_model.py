@@ -445,7 +445,8 @@ def test_lane_excess_is_the_exact_distance_outside_the_nearest_lane_strip(lanes_
 def test_lane_steering_turns_a_drifting_car_back_onto_the_road():
     """Final-step lane keeping: a plan that curves off the road is steered back onto a lane by
     its yaw rates alone; a car that is off every lane now is left alone."""
-    from counterscene_env.world_model.map_guidance import lane_excess, steer_onto_lanes
+    from counterscene_env.world_model.lane_steering import steer_onto_lanes
+    from counterscene_env.world_model.map_guidance import lane_excess
 
     # The shipped model's action scales (yaw rate: 0.3 rad/s per normalised unit).
     tiny = _model(normalization=Normalization((0.0, 0.0), (1.4, 0.3)))
@@ -477,7 +478,7 @@ def test_lane_steering_leaves_plans_that_run_past_the_end_of_the_map_alone():
     the lane end (it did, on NGSIM's short map sections)."""
     from conftest import straight_road
 
-    from counterscene_env.world_model.map_guidance import steer_onto_lanes
+    from counterscene_env.world_model.lane_steering import steer_onto_lanes
 
     tiny = _model(normalization=Normalization((0.0, 0.0), (1.4, 0.3)))
     # The road ends at x = 70 m (20 m ahead of the ego, at the window's origin); the cars are
@@ -497,17 +498,79 @@ def test_lane_steering_leaves_plans_that_run_past_the_end_of_the_map_alone():
     assert not torch.equal(steer_onto_lanes(tiny, batch, drifting, 40), drifting)
 
 
-def test_steering_rollout_is_the_unicycle_with_fixed_accelerations(tiny):
-    from counterscene_env.world_model.map_guidance import _steering_rollout
+def _steering_cost(tiny, x, state, lanes_batch=None):
+    """A ``SteeringCost`` for tokens ``x [N, K, Ta, 2]`` from states ``[N, K, 4]``, with every
+    point's candidates the segments of one straight two-lane road."""
+    from counterscene_env.dynamics import max_yaw_rate
+    from counterscene_env.world_model.lane_steering import SteeringCost
 
+    c = tiny.config
+    traj = tiny.rollout(x, state)
+    v = traj[..., 3]
+    limit = max_yaw_rate(torch.cat([state[..., None, 3], v[..., :-1]], -1), c.yaw_gain, 25.0)
+    R, F = v.shape[0] * v.shape[1], v.shape[2]
+    # Two lanes at y = 0 and y = 4 (half-width 1.8 m), each of 3 sub-segments, turned by
+    # 0.3 rad so that the off-lane direction has both an x and a y part.
+    starts = torch.tensor(
+        [[-50.0, 0.0], [0.0, 0.0], [50.0, 0.0], [-50.0, 4.0], [0.0, 4.0], [50.0, 4.0]]
+    ).double()
+    turn = torch.tensor([[np.cos(0.3), np.sin(0.3)], [-np.sin(0.3), np.cos(0.3)]]).double()
+    ca = (starts @ turn).expand(R, F, 6, 2)
+    cb = ca + torch.tensor([50.0, 0.0]).double() @ turn
+    half = torch.full((R, F, 6), 1.8).double()
+    ok = torch.ones(R, F, 6, dtype=torch.bool)
+    first = torch.tensor([True, False, False, True, False, False]).expand(R, F, 6)
+    last = torch.tensor([False, False, True, False, False, True]).expand(R, F, 6)
+    cands = tuple(t.numpy() for t in (ca, cb, half, ok, first, last))
+    flat = lambda t: t.flatten(0, 1).double().numpy()  # noqa: E731
+    return SteeringCost(
+        flat(v),
+        flat(limit),
+        flat(state[..., :3]),
+        cands,
+        float(tiny.action_std[1]),
+        float(tiny.action_mean[1]),
+        c.action_stride,
+        c.dt,
+    )
+
+
+def test_steering_rollout_is_the_unicycle_with_fixed_accelerations(tiny):
+    """Lane keeping's closed-form rollout of yaw-rate tokens (fixed accelerations) gives the
+    model's unicycle rollout."""
     g = torch.Generator().manual_seed(0)
     c = tiny.config
     x = torch.randn(3, c.num_agents, c.action_tokens, 2, generator=g)
     state = torch.rand(3, c.num_agents, 4, generator=g) * torch.tensor([50.0, 50.0, 6.0, 20.0])
     turned = x.clone()
     turned[..., 1] += torch.randn(turned.shape[:-1], generator=g)
-    fast = _steering_rollout(tiny, x, state)(turned)
-    torch.testing.assert_close(fast, tiny.rollout(turned, state)[..., :2], rtol=0, atol=1e-3)
+    cost = _steering_cost(tiny, x, state)
+    fx, fy, _ = cost.centres(turned[..., 1].flatten(0, 1).double().numpy())
+    slow = tiny.rollout(turned, state)[..., :2].flatten(0, 1).double()
+    torch.testing.assert_close(torch.from_numpy(np.stack([fx, fy], -1)), slow, rtol=0, atol=1e-3)
+
+
+def test_steering_gradient_is_the_cost_s_derivative(tiny):
+    """The written-out gradient of lane keeping's cost matches central finite differences."""
+    g = torch.Generator().manual_seed(1)
+    c = tiny.config
+    x = torch.randn(2, 3, c.action_tokens, 2, generator=g) * 0.5
+    # Cars on the turned lanes, heading 0.4-0.5 rad off them: each plan leaves the road.
+    state = torch.tensor([[0.0, 1.0, 0.8, 12.0], [10.0, 6.0, -0.2, 8.0], [-20.0, -4.0, 0.8, 15.0]])
+    state = state.expand(2, 3, 4)
+    cost = _steering_cost(tiny, x, state)
+    tokens = x[..., 1].flatten(0, 1).double().numpy()
+    change = np.full_like(tokens, 0.1)
+    value, grad = cost(tokens, change)
+    assert (value > 0.5).all()  # every plan leaves the road: the lane term is active
+    eps, numeric = 1e-6, np.zeros_like(tokens)
+    for j in range(tokens.shape[1]):
+        step = np.zeros_like(tokens)
+        step[:, j] = eps
+        up = cost(tokens + step, change + step, gradient=False)[0]
+        down = cost(tokens - step, change - step, gradient=False)[0]
+        numeric[:, j] = (up - down) / (2 * eps)
+    np.testing.assert_allclose(grad, numeric, rtol=1e-4, atol=1e-6)
 
 
 def test_learning_rate_schedule():

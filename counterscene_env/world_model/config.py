@@ -67,7 +67,7 @@ class ModelConfig:
             posterior mean, clipped to the step's sigma; 0 disables); see ``map_guidance.py``.
             Off by default: measured on the held-out scenes it lowers the off-road rate but
             raises ADE more (docs/world_model.md).
-        lane_steering: Adam steps of final-step lane keeping (``map_guidance.
+        lane_steering: Adam steps of final-step lane keeping (``lane_steering.
             steer_onto_lanes``): the finished samples' yaw-rate tokens are corrected so that
             every agent that is on a lane now keeps its centre inside a lane strip; 0 disables
             (checkpoints without the key). Measured in docs/world_model.md.

@@ -1,13 +1,12 @@
-"""Keeping sampled trajectories on the lanes (paper hyper-parameters "map guidance" and
-"final-step guidance").
+"""The off-lane distance, and keeping sampled trajectories on the lanes while sampling (paper
+hyper-parameter "map guidance").
 
-Two tools, both measured in docs/world_model.md:
-
+- ``lane_excess``: how far points lie outside every lane strip, the measure of the training
+  loss's off-lane term, the realism cost and the guidance's off-lane term.
 - ``make_map_guidance``: like the public CounterScene/CCDiff code, a guidance hook that moves
   every on-lane agent's posterior mean down the gradient of its off-lane loss while sampling
-  (``ModelConfig.map_guidance``, off by default: it costs more accuracy than it buys).
-- ``steer_onto_lanes``: final-step lane keeping, a correction of the finished samples' yaw
-  rates (``ModelConfig.lane_steering``, on in both presets).
+  (``ModelConfig.map_guidance``, off by default: it costs more accuracy than it buys; measured
+  in docs/world_model.md). Final-step lane keeping is ``lane_steering.py``.
 
 The off-lane loss is the distance by which a predicted centre lies outside the nearest lane
 strip of the window's map (``|p - segment| - width / 2``, hinged at 0). Only agents on a lane
@@ -19,15 +18,7 @@ from __future__ import annotations
 
 import torch
 
-from counterscene_env.dynamics import max_yaw_rate
-
 ON_LANE_TOLERANCE = 1.0  # m outside a lane strip at "now" that still counts as on a lane
-LANE_MARGIN = 0.2  # m: steered points end at least this far inside a lane strip's edge
-CANDIDATES = 6  # lane segments per predicted point that the steering may aim at
-STEER_LR = 0.1  # Adam step on the normalised yaw-rate tokens
-STEER_PRIOR = 0.01  # weight of the squared change of the tokens (normalised units)
-ADAM_BETAS = (0.9, 0.999)  # the steering's Adam moments (torch.optim.Adam's defaults)
-ADAM_EPS = 1e-8
 NEAREST_PIECES = 8  # lane pieces per point that ``lane_excess`` measures before its check
 
 
@@ -141,7 +132,7 @@ def off_lane_loss(
     return (excess * ok).sum() / ok.float().sum().clamp(min=1)
 
 
-def _on_lane_agents(model, batch: dict[str, torch.Tensor], num_samples: int):
+def on_lane_agents(model, batch: dict[str, torch.Tensor], num_samples: int):
     """The window's lanes and the agents' current states, repeated for ``num_samples`` samples
     per scene (``N = B * S`` rows), and ``guided [N, K]``: the real agents on a lane now."""
     lanes = batch["map"].repeat_interleave(num_samples, 0)  # [N, M, P, 2]
@@ -160,7 +151,7 @@ def make_map_guidance(model, batch: dict[str, torch.Tensor], num_samples: int, s
     so guidance never moves a sample further than the noise of that step would; at the last
     step (``sigma = 0``) it does nothing.
     """
-    lanes, lanes_ok, widths, state, guided = _on_lane_agents(model, batch, num_samples)
+    lanes, lanes_ok, widths, state, guided = on_lane_agents(model, batch, num_samples)
 
     def hook(mean: torch.Tensor, sigma: float, t: int, x0: torch.Tensor) -> torch.Tensor:
         if sigma <= 0 or not guided.any():
@@ -174,182 +165,3 @@ def make_map_guidance(model, batch: dict[str, torch.Tensor], num_samples: int, s
         return mean + torch.where(guided[..., None, None], delta, 0.0)
 
     return hook
-
-
-def steer_onto_lanes(
-    model, batch: dict[str, torch.Tensor], normalized: torch.Tensor, iterations: int
-) -> torch.Tensor:
-    """Final-step lane keeping: correct the *yaw-rate* tokens of finished samples so that every
-    on-lane agent's rolled-out centre stays inside a lane strip of the window's map.
-
-    This is the paper's final-step (map) guidance restricted to steering. ``iterations`` Adam
-    steps (``STEER_LR``) minimise, per agent, the mean squared distance by which its centre
-    lies outside the nearest candidate strip narrowed by ``LANE_MARGIN``, plus
-    ``STEER_PRIOR`` x the squared change of its tokens. Acceleration is never touched: braking
-    is the cheapest way to stay on a lane (a car that stops stays where it is), and it is not
-    what an under-turning sample gets wrong. Each agent keeps the iterate of lowest cost. A
-    point past a lane's end (beyond the first or last point of the lane piece nearest to it)
-    is not off its lane: a real map is a crop, and the road goes on beyond it. The
-    candidates are each point's ``CANDIDATES`` nearest segments before the correction, so one
-    step costs ``K x F x CANDIDATES`` distances per sample instead of every segment of the map.
-
-    Args:
-        model: the ``WorldModel`` that sampled (its rollout and normalisation).
-        batch: the scene windows, ``B`` of them.
-        normalized: ``[B * S, K, Ta, 2]`` sampled action tokens, normalised (S samples per
-            scene, scene-major as ``WorldModel.sample`` draws them).
-        iterations: Adam steps; 0 returns ``normalized`` unchanged.
-
-    Returns:
-        ``[B * S, K, Ta, 2]``: the tokens with corrected yaw rates (agents off every lane at
-        "now", padding and acceleration unchanged).
-    """
-    if iterations <= 0:
-        return normalized
-    S = normalized.shape[0] // batch["map"].shape[0]
-    lanes, lanes_ok, widths, state, guided = _on_lane_agents(model, batch, S)
-    if not guided.any() or not lanes_ok.any():
-        return normalized
-    N, M, P, _ = lanes.shape  # segments: [N, M * (P - 1)] ends, allowed half-widths, validity
-    a, b = lanes[:, :, :-1].reshape(N, -1, 2), lanes[:, :, 1:].reshape(N, -1, 2)
-    half = (widths[:, :, None] / 2 - LANE_MARGIN).expand(N, M, P - 1).reshape(N, -1)
-    ok = lanes_ok[:, :, None].expand(N, M, P - 1).reshape(N, -1)
-    rollout = _steering_rollout(model, normalized, state)
-    with torch.no_grad():
-        cands = _candidates(rollout(normalized), a, b, half, ok, P)
-        # Only agents off their lanes now move: elsewhere the cost and its gradient are 0,
-        # Adam's step is 0, and the tokens stay as they are. Steering those alone is the
-        # same result for a fraction of the work (most agents keep to their lanes).
-        active = guided & (_lane_cost(rollout(normalized), cands) > 0)
-    if not active.any():
-        return normalized
-    rows = rollout.subset(active)
-    tokens = normalized[active]  # [A, Ta, 2]
-    cands = tuple(c[active] for c in cands)
-    steer = torch.zeros_like(tokens)
-    steer[..., 1] = 1.0  # only the yaw-rate channel moves
-    delta = torch.zeros_like(tokens)
-    # Adam (Kingma & Ba 2015), written out: torch.optim's first use imports torch._dynamo,
-    # seconds per process, most of the first replan (docs/performance.md).
-    m, v = torch.zeros_like(delta), torch.zeros_like(delta)
-    # Adam on a hinge overshoots: once a plan is on the lane its gradient vanishes, and the
-    # prior and the momentum carry it back off. So each agent keeps its best iterate.
-    best = torch.zeros_like(tokens)
-    best_cost = torch.full(tokens.shape[:1], torch.inf, device=tokens.device)
-    for i in range(iterations + 1):
-        with torch.enable_grad():
-            x = delta.requires_grad_(True)
-            change = x * steer
-            cost = _lane_cost(rows(tokens + change), cands)
-            cost = cost + STEER_PRIOR * (change**2).sum((-1, -2))  # [A]
-            grad = torch.autograd.grad(cost.sum(), x)[0] if i < iterations else None
-        delta = delta.detach()
-        cost = cost.detach()
-        better = cost < best_cost
-        best = torch.where(better[..., None, None], delta, best)
-        best_cost = torch.where(better, cost, best_cost)
-        if grad is not None:
-            # m_k = b1 m + (1 - b1) g, v_k = b2 v + (1 - b2) g^2, bias-corrected by 1 - b^k.
-            m = ADAM_BETAS[0] * m + (1 - ADAM_BETAS[0]) * grad
-            v = ADAM_BETAS[1] * v + (1 - ADAM_BETAS[1]) * grad**2
-            m_hat = m / (1 - ADAM_BETAS[0] ** (i + 1))
-            v_hat = v / (1 - ADAM_BETAS[1] ** (i + 1))
-            delta = delta - STEER_LR * m_hat / (v_hat.sqrt() + ADAM_EPS)
-    out = normalized.clone()
-    out[active] = tokens + best * steer
-    return out.detach()
-
-
-def _lane_cost(p: torch.Tensor, cands: tuple[torch.Tensor, ...]) -> torch.Tensor:
-    """``[...]`` mean squared distance [m^2] by which the centres ``p [..., F, 2]`` lie
-    outside their nearest candidate strip (``_candidates``: ``[..., F, C]`` each); a point
-    past a lane piece's end is not off its lane."""
-    ca, cb, ch, cok, first, last = cands
-    dist, u = _segment_projection(p[..., None, :], ca, cb)  # [..., F, C]
-    gap = torch.where(cok, dist - ch, 1e3)
-    nearest = gap.argmin(-1, keepdim=True)
-    # A point is off its lane only beside a lane, not past a lane's end: a real map is a
-    # crop, and beyond its last lane nothing is known (the road goes on). Without this, a
-    # plan that runs past the end of the map is steered round in a circle toward the nearest
-    # lane end (docs/world_model.md, "Real driving").
-    beyond = ((u > 1) & last) | ((u < 0) & first)
-    beyond = beyond.gather(-1, nearest)[..., 0]
-    excess = gap.gather(-1, nearest)[..., 0].clamp(min=0)  # [..., F]
-    return (torch.where(beyond, 0.0, excess) ** 2).mean(-1)
-
-
-def _candidates(
-    xy: torch.Tensor, a: torch.Tensor, b: torch.Tensor, half: torch.Tensor, ok: torch.Tensor, P: int
-) -> tuple[torch.Tensor, ...]:
-    """Each predicted point's ``CANDIDATES`` nearest lane sub-segments.
-
-    Args:
-        xy: ``[N, K, F, 2]`` predicted centres, m; ``a``, ``b``: ``[N, S, 2]`` sub-segment ends
-            (``S = M (P - 1)``, lane piece by lane piece); ``half``: ``[N, S]`` allowed
-            half-widths, m; ``ok``: ``[N, S]`` validity; ``P``: points per lane piece.
-
-    Returns:
-        ``[N, K, F, C, ...]``: the candidates' ends ``a``, ``b`` (``[..., 2]``), half-widths,
-        validity, and whether each is the first or the last sub-segment of its lane piece.
-    """
-    # Chosen once: refreshing them as the points move bought little for its cost. They are
-    # ranked by the distance to the segments' midpoints less their half-widths, one matrix
-    # product (``torch.cdist``) instead of an exact point-to-segment distance to every segment
-    # of the map, which dominated the steering's time (docs/performance.md); segments are
-    # short (a lane piece over its points), so the nearest midpoints hold the nearest segments.
-    N = xy.shape[0]
-    mid = (a + b) / 2  # [N, S, 2]
-    gap = torch.cdist(xy.flatten(1, 2), mid) - half[:, None]  # [N, K*F, S]
-    gap = torch.where(ok[:, None], gap, torch.inf)
-    idx = gap.topk(min(CANDIDATES, gap.shape[-1]), dim=-1, largest=False).indices
-    scene = torch.arange(N, device=idx.device)[:, None, None]
-    shape = (*xy.shape[:3], idx.shape[-1])  # [N, K, F, C]
-    # Which sub-segment of its lane piece each candidate is: a point past the first or the
-    # last one lies beyond the piece, not beside it.
-    sub = (idx % (P - 1)).reshape(shape)
-    return (
-        a[scene, idx].reshape(*shape, 2),
-        b[scene, idx].reshape(*shape, 2),
-        half[scene, idx].reshape(shape),
-        ok[scene, idx].reshape(shape),
-        sub == 0,
-        sub == P - 2,
-    )
-
-
-def _steering_rollout(model, normalized: torch.Tensor, state: torch.Tensor):
-    """``tokens -> [N, K, F, 2]`` centres: ``model.rollout`` for tokens that differ from
-    ``normalized [N, K, Ta, 2]`` in the yaw-rate channel only, without its step loop.
-
-    The unicycle's speeds depend on the accelerations alone, so with those fixed the speeds,
-    and with them the yaw-rate bounds, are known in advance; the courses and positions are
-    then cumulative sums (the same update as ``dynamics.unicycle_rollout``:
-    ``yaw_k = yaw_{k-1} + w_k dt``, ``x_k = x_{k-1} + v_k cos(yaw_k) dt``).
-    """
-    c = model.config
-    with torch.no_grad():
-        v = model.rollout(normalized, state)[..., 3]  # [N, K, F] speed after each step
-        before = torch.cat([state[..., None, 3], v[..., :-1]], -1)  # speed entering step k
-        limit = max_yaw_rate(before, c.yaw_gain, c.lateral_limit)
-    return _YawRollout(model, v, limit, state[..., :3])
-
-
-class _YawRollout:
-    """``tokens [..., Ta, 2] -> [..., F, 2]`` centres for fixed speeds ``v [..., F]``, yaw-rate
-    bounds ``limit [..., F]`` and start poses ``pose [..., 3]`` (x, y, yaw)."""
-
-    def __init__(self, model, v: torch.Tensor, limit: torch.Tensor, pose: torch.Tensor) -> None:
-        self.model, self.v, self.limit, self.pose = model, v, limit, pose
-
-    def subset(self, rows: torch.Tensor) -> _YawRollout:
-        """The rollout of the agents ``rows`` (a boolean mask over the leading axes)."""
-        return _YawRollout(self.model, self.v[rows], self.limit[rows], self.pose[rows])
-
-    def __call__(self, tokens: torch.Tensor) -> torch.Tensor:
-        c = self.model.config
-        rate = self.model.denormalize(tokens)[..., 1].repeat_interleave(c.action_stride, -1)
-        rate = torch.maximum(torch.minimum(rate, self.limit), -self.limit)
-        yaw = self.pose[..., 2, None] + c.dt * rate.cumsum(-1)
-        x = self.pose[..., 0, None] + c.dt * (self.v * torch.cos(yaw)).cumsum(-1)
-        y = self.pose[..., 1, None] + c.dt * (self.v * torch.sin(yaw)).cumsum(-1)
-        return torch.stack([x, y], -1)

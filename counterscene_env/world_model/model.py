@@ -33,7 +33,8 @@ from counterscene_env.world_model import features
 from counterscene_env.world_model.cig import edge_features
 from counterscene_env.world_model.config import ModelConfig
 from counterscene_env.world_model.denoiser import Context, Denoiser
-from counterscene_env.world_model.map_guidance import off_lane_loss, steer_onto_lanes
+from counterscene_env.world_model.lane_steering import steer_onto_lanes
+from counterscene_env.world_model.map_guidance import off_lane_loss
 from counterscene_env.world_model.overlap import overlap_loss
 from counterscene_env.world_model.scheduler import CosineScheduler
 from counterscene_env.world_model.window import WindowConfig
@@ -318,7 +319,7 @@ class WorldModel(nn.Module):
             map_guidance: step size of the map guidance (``map_guidance.py``); default from the
                 config, 0 disables.
             lane_steering: Adam steps of final-step lane keeping on the finished samples
-                (``map_guidance.steer_onto_lanes``); default from the config, 0 disables.
+                (``lane_steering.steer_onto_lanes``); default from the config, 0 disables.
             init: ``[B, K, Ta, 2]`` normalised action tokens to start from instead of pure
                 noise (a warm start: the previous plan, shifted to "now"). It is noised to the
                 level of the sampler's last ``init_steps`` steps, ``x_t = sqrt(abar_t) init +
