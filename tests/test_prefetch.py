@@ -129,3 +129,37 @@ def test_where_the_recorder_process_cannot_start_every_scene_is_recorded_here(mo
             np.testing.assert_array_equal(source.draw(rng).positions, expected.positions)
             rng = np.random.default_rng(2)
     assert not prefetch.available() and source.served_ahead == 0
+
+
+def test_the_next_two_draws_are_recorded_ahead_when_the_draws_between_are_known():
+    from counterscene_env.envs.single_agent import draw_episode_seed
+
+    def draws(source: SceneSource, rng: np.random.Generator) -> list[np.ndarray]:
+        first = source.draw(rng).positions
+        draw_episode_seed(rng)  # what an env draws between two scenes
+        return [first, source.draw(rng).positions]
+
+    expected = draws(SceneSource("merge"), np.random.default_rng(8))
+    source, rng = SceneSource("merge"), np.random.default_rng(8)
+    source.prefetch(rng, between=draw_episode_seed)
+    while source.recording_ahead:
+        time.sleep(0.01)
+    for got, want in zip(draws(source, rng), expected, strict=True):
+        np.testing.assert_array_equal(got, want)
+    assert source.served_ahead == 2
+
+
+def test_a_recording_ahead_not_yet_begun_is_recorded_here_on_demand():
+    """A reset that would wait for the process records the scene after its own meanwhile:
+    the same scene, the same seeds skipped (intersection seed 0 is rejected: two cars crash)."""
+    from counterscene_env.scene.highway import generate
+
+    recorder = prefetch._recorder()
+    blocker = recorder.submit("intersection", 3)  # the process is busy with this one first
+    ahead = prefetch.Prefetch("intersection", 0)
+    ahead.record_here()
+    assert not recorder.started(ahead.ticket) and not ahead.running
+    expected = generate("intersection", 0)
+    np.testing.assert_array_equal(ahead.take("intersection", 0).positions, expected.positions)
+    assert ahead.scene.metadata["rejected_seeds"] == expected.metadata["rejected_seeds"] == [0]
+    recorder.withdraw(blocker)

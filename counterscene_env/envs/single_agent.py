@@ -47,6 +47,12 @@ from counterscene_env.sim.state import Episode
 from counterscene_env.world_model.checkpoint import shared_model
 
 
+def draw_episode_seed(rng: np.random.Generator) -> int:
+    """An episode's closed-loop seed, drawn from the env's generator after its scene (the
+    draws between two scene draws, which a recording ahead foresees: ``SceneSource.prefetch``)."""
+    return int(rng.integers(2**31))
+
+
 class CounterSceneEnv(AbstractEnv):
     """Stress-test a driving policy against world-model traffic with a guided adversary.
 
@@ -273,7 +279,7 @@ class CounterSceneEnv(AbstractEnv):
             self.loop = ClosedLoop(model, sim)
         seed = self._reset_options.get("episode_seed")
         if seed is None:
-            seed = int(self.np_random.integers(2**31))
+            seed = draw_episode_seed(self.np_random)
         if self.shared:
             self.loop.start(self.slot, scene, seed, egos)
         else:
@@ -295,7 +301,7 @@ class CounterSceneEnv(AbstractEnv):
         self.traffic = self.mirror.traffic
         self._sync_road()
         if config["prefetch_scenes"] and drawn:  # the next reset's scene, if it draws too
-            self._source.prefetch(self.np_random)
+            self._source.prefetch(self.np_random, between=draw_episode_seed)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         """highway-env's step, after the action is checked: a refused action (wrong type,

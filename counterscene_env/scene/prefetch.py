@@ -5,10 +5,11 @@ factual log): Python that holds one core for 0.2-0.4 s, as long as a whole episo
 actions (docs/performance.md). A scene is a function of its road and seed alone
 (``scene.highway.generate``), so it can be recorded anywhere and ahead of time:
 
-- :class:`Prefetch` records the scene an env's next reset will draw; that reset takes it if
-  the draw matches, or records the scene itself if it does not (an env re-seeded by
-  ``reset(seed=...)``, an episode that used the env's generator). The episode is the one the
-  seed gives either way.
+- :class:`Prefetch` records the scene an env's next reset will draw (and the one after); that
+  reset takes it if the draw matches, or records the scene itself if it does not (an env
+  re-seeded by ``reset(seed=...)``, an episode that used the env's generator). The episode is
+  the one the seed gives either way. A reset that would wait for the process records the
+  scene after its own meanwhile, unless the process has begun it: both cores record.
 - :func:`safe_scenes_ahead` gives a stress run's scenes in order, the next ones recorded
   while a batch runs.
 
@@ -123,6 +124,11 @@ class Prefetch:
         self._advance(wait=False)
         return self.scene is None and not self.failed
 
+    @property
+    def in_progress(self) -> bool:
+        """Whether the background process has begun the recording and not yet finished it."""
+        return self.running and self.recorder.started(self.ticket)
+
     def take(self, road: str, seed: int) -> Scene | None:
         """The scene if it is the one asked for and its recording has begun (waiting for it
         to end); None otherwise: the caller records it (a recording still queued behind
@@ -134,6 +140,25 @@ class Prefetch:
             return None
         self._advance(wait=True)
         return self.scene
+
+    def record_here(self) -> None:
+        """Record the scene in this process now, unless the background process has begun it
+        (a caller that would otherwise wait for the process does this work meanwhile)."""
+        self._advance(wait=False)
+        if self.scene is not None or self.failed or self.recorder.started(self.ticket):
+            return
+        self.recorder.withdraw(self.ticket)
+        road = self.key[0]
+        while self.scene is None and not self.failed:
+            scene = _record_here(road, self.seed)
+            if scene is not None:
+                scene.metadata["rejected_seeds"] = self.rejected
+                self.scene = scene
+            elif len(self.rejected) + 1 == _max_attempts():
+                self.failed = True  # generate's error, raised by the caller's own call
+            else:
+                self.rejected.append(self.seed)
+                self.seed += 1
 
     def cancel(self) -> None:
         """Withdraw the recording (the child drops it if it has not begun)."""

@@ -22,7 +22,7 @@ with the log (``ClosedLoop`` caps its length at the log's last step).
 from __future__ import annotations
 
 import copy
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -125,7 +125,9 @@ class SceneSource:
             raise ValueError(f"scenario must be a name, a path or a list of them, got {spec!r}")
         self.specs = [check_spec(s) for s in specs]
         self._cache: dict[str, list[Scene]] = {}
-        self._ahead: prefetch.Prefetch | None = None
+        #: The coming draws, in order: (spec, seed or index), and the recording made ahead
+        #: for a generated road's.
+        self._ahead: list[tuple[tuple[str, int], prefetch.Prefetch | None]] = []
         #: Draws served by a recording made ahead (:meth:`prefetch`), this process.
         self.served_ahead = 0
 
@@ -137,8 +139,16 @@ class SceneSource:
         if prefetching and any(spec in Scenario.values() for spec in self.specs):
             prefetch.start()
         spec, k = self._pick(rng)
+        guess, ahead = self._ahead.pop(0) if self._ahead else (None, None)
+        if guess != (spec, k):  # the draws went another way: the later guesses are wrong too
+            self._ahead.insert(0, (guess, ahead))
+            self.drop_prefetch()
+            ahead = None
         if spec in Scenario.values():
-            ahead, self._ahead = self._ahead, None
+            after = self._ahead[0][1] if self._ahead else None
+            if ahead is not None and ahead.in_progress and after is not None:
+                # Rather than wait for the process, record the next draw's scene here.
+                after.record_here()
             scene = ahead.take(spec, k) if ahead is not None else None
             self.served_ahead += scene is not None
             if scene is None:
@@ -148,30 +158,49 @@ class SceneSource:
             return scene
         return self._scenes(spec)[k]
 
-    def prefetch(self, rng: np.random.Generator) -> None:
-        """Start recording, in a background process, the scene that ``draw(rng)`` would give
-        now (``rng`` is not advanced; ``scene/prefetch.py``). Nothing for a stored spec, in a
-        daemonic process, or while a recording ahead is still pending."""
-        if self._ahead is not None or not prefetch.available():
+    def prefetch(
+        self,
+        rng: np.random.Generator,
+        between: Callable[[np.random.Generator], object] | None = None,
+    ) -> None:
+        """Start recording, in a background process, the scenes that the next draws from
+        ``rng`` would give (``rng`` is not advanced; ``scene/prefetch.py``): the next one, and
+        the one after if ``between`` makes the draws the caller takes from ``rng`` between two
+        of ours (an env: its episode seed). Nothing for stored specs or in a daemonic
+        process; a recording already made ahead for one of these draws is kept."""
+        if not prefetch.available():
             return
-        spec, k = self._pick(copy.deepcopy(rng))
-        if spec in Scenario.values():
-            self._ahead = prefetch.Prefetch(spec, k)
+        rng = copy.deepcopy(rng)
+        keys = [self._pick(rng)]
+        if between is not None:
+            between(rng)
+            keys.append(self._pick(rng))
+        n = min(len(keys), len(self._ahead))
+        if [key for key, _ in self._ahead[:n]] != keys[:n]:
+            self.drop_prefetch()
+        for _, ahead in self._ahead[len(keys) :]:  # guesses beyond what can be foreseen now
+            if ahead is not None:
+                ahead.cancel()
+        del self._ahead[len(keys) :]
+        for spec, k in keys[len(self._ahead) :]:
+            ahead = prefetch.Prefetch(spec, k) if spec in Scenario.values() else None
+            self._ahead.append(((spec, k), ahead))
 
     def drop_prefetch(self) -> None:
-        """Withdraw a recording made ahead that no draw has taken yet."""
-        if self._ahead is not None:
-            self._ahead.cancel()
-            self._ahead = None
+        """Withdraw the recordings made ahead that no draw has taken yet."""
+        for _, ahead in self._ahead:
+            if ahead is not None:
+                ahead.cancel()
+        self._ahead = []
 
     @property
     def recording_ahead(self) -> bool:
         """Whether a background process is recording a scene for this source right now."""
-        return self._ahead is not None and self._ahead.running
+        return any(a is not None and a.running for _, a in self._ahead)
 
     def __getstate__(self) -> dict:
         # A recording ahead belongs to this process (a copy or a pickle records its own).
-        return {**self.__dict__, "_ahead": None}
+        return {**self.__dict__, "_ahead": []}
 
     def _pick(self, rng: np.random.Generator) -> tuple[str, int]:
         """The spec and the seed (generated) or scene index (stored) of a draw."""
