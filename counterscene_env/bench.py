@@ -51,10 +51,12 @@ def bench_highway_env(steps: int, seed: int = 0) -> dict[str, Any]:
         ANCHOR_ENV,
         config={"policy_frequency": ANCHOR_FREQUENCY, "simulation_frequency": ANCHOR_FREQUENCY},
     )
-    env.action_space.seed(seed)
+    rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     start, episodes = time.perf_counter(), 1
     for _ in range(steps):
+        # Seeded at every step, as ours below: each reset builds a new, unseeded action space.
+        env.action_space.seed(int(rng.integers(2**31)))
         _, _, terminated, truncated, _ = env.step(env.action_space.sample())
         if terminated or truncated:
             env.reset()

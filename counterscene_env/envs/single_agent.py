@@ -301,7 +301,10 @@ class CounterSceneEnv(AbstractEnv):
         self.traffic = self.mirror.traffic
         self._sync_road()
         if config["prefetch_scenes"] and drawn:  # the next reset's scene, if it draws too
-            self._source.prefetch(self.np_random, between=draw_episode_seed)
+            # Two draws ahead for one env; one per env in a vector env, whose envs keep the
+            # recorder's queue as many deep already (docs/performance.md).
+            between = None if self.shared else draw_episode_seed
+            self._source.prefetch(self.np_random, between=between)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         """highway-env's step, after the action is checked: a refused action (wrong type,
