@@ -301,9 +301,11 @@ class CounterSceneEnv(AbstractEnv):
         self.traffic = self.mirror.traffic
         self._sync_road()
         if config["prefetch_scenes"] and drawn:  # the next reset's scene, if it draws too
-            # Two draws ahead for one env; one per env in a vector env, whose envs keep the
+            # Two draws ahead for one env that draws its episode seeds (the next reset is
+            # taken to be like this one); one per env in a vector env, whose envs keep the
             # recorder's queue as many deep already (docs/performance.md).
-            between = None if self.shared else draw_episode_seed
+            own_seed = self._reset_options.get("episode_seed") is None
+            between = draw_episode_seed if own_seed and not self.shared else None
             self._source.prefetch(self.np_random, between=between)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
