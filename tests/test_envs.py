@@ -210,6 +210,29 @@ def test_same_seed_and_actions_give_the_same_episode():
     b_env.close()
 
 
+def test_an_action_space_seeded_once_samples_the_same_actions_after_every_reset():
+    """Gymnasium users seed the action space once; highway-env builds new, unseeded spaces at
+    every reset, and ours keeps an unchanged space with its generator. A reset that changes
+    the action type gets the new space."""
+
+    def samples(env: CounterSceneEnv) -> np.ndarray:
+        env.action_space.seed(3)
+        out = []
+        for seed in (1, 2):
+            env.reset(seed=seed, options={"scene": crash_scene()})
+            out += [env.action_space.sample() for _ in range(3)]
+        return np.stack(out)
+
+    a, b = CounterSceneEnv(config=SHORT), CounterSceneEnv(config=SHORT)
+    np.testing.assert_array_equal(samples(a), samples(b))
+    space = a.action_space
+    discrete = {"action": {"type": "DiscreteMetaAction"}}
+    a.reset(options={"config": discrete, "scene": crash_scene()})
+    assert a.action_space is not space and a.action_space == gym.spaces.Discrete(5)
+    a.close()
+    b.close()
+
+
 # ---------------------------------------------------------------------- spaces and returns
 def test_observations_stay_in_the_space_and_returns_are_plain(env):
     """Every observation is a float32 member of observation_space (the [-1, 1] box);

@@ -38,6 +38,7 @@ from counterscene_env.envs.spaces import (
     as_highway_action,
     bounded_space,
     check_action,
+    kept_if_unchanged,
 )
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.prefetch import one_thread_if
@@ -186,7 +187,9 @@ class CounterSceneEnv(AbstractEnv):
     def define_spaces(self) -> None:
         """highway-env's spaces, with the ``Kinematics`` box bounded to [-1, 1] when every
         feature is normalised and clipped there (highway-env declares (-inf, inf)), and its
-        observations kept to ``vehicles_count`` rows (:class:`RowCappedKinematics`)."""
+        observations kept to ``vehicles_count`` rows (:class:`RowCappedKinematics`). A space
+        equal to the one before is kept, with its generator (``kept_if_unchanged``)."""
+        before = self.__dict__.get("action_space"), self.__dict__.get("observation_space")
         super().define_spaces()
         per_ego = getattr(self.observation_type, "agents_observation_types", None)
         for t in per_ego or [self.observation_type]:
@@ -204,6 +207,8 @@ class CounterSceneEnv(AbstractEnv):
         else:
             bounded = [bounded_space(s, t) for s, t in zip(space.spaces, per_ego, strict=True)]
             self.observation_space = spaces.Tuple(bounded)
+        self.action_space = kept_if_unchanged(before[0], self.action_space)
+        self.observation_space = kept_if_unchanged(before[1], self.observation_space)
 
     @property
     def sim_config(self) -> SimConfig:

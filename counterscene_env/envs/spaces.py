@@ -117,3 +117,13 @@ class RowCappedKinematics(KinematicObservation):
             return fast
         obs = super().observe()
         return obs[: self.vehicles_count] if obs.ndim == 2 else obs
+
+
+def kept_if_unchanged(old: spaces.Space | None, new: spaces.Space) -> spaces.Space:
+    """``old`` if it equals ``new`` (same kind, shape, bounds), else ``new``.
+
+    highway-env builds new spaces at every reset, each with a fresh, unseeded generator; a
+    Gymnasium user seeds a space once (``env.action_space.seed(s)``) and expects its samples
+    to be reproducible across episodes. Keeping an unchanged space keeps its generator.
+    """
+    return old if old is not None and old == new else new
