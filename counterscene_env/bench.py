@@ -79,7 +79,7 @@ def bench_env_and_replans(steps: int, seed: int = 0) -> dict[str, Any]:
     for _ in range(steps):
         ep = env.loop.episodes[0]
         n, before = ep.replans, ep.replan_seconds
-        # Seeded at every step: each reset builds a new action space (as in envs/bench.py).
+        # Seeded at every step, as the anchor above (the same actions as earlier benches).
         env.action_space.seed(int(rng.integers(2**31)))
         action = env.action_space.sample()
         t = time.perf_counter()

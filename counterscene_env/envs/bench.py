@@ -54,9 +54,8 @@ def bench_env(
     for _ in range(steps):
         t = time.perf_counter()
         if policy == "random":
-            # Seeded from the run's generator at every step: each reset builds a new action
-            # space (highway-env), so seeding the space once would leave later episodes
-            # unseeded.
+            # Seeded from the run's generator at every step, as the bench's anchor must be
+            # (highway-env builds a new, unseeded action space at every reset; ours keeps it).
             env.action_space.seed(int(rng.integers(2**31)))
             action = env.action_space.sample()
         else:
