@@ -137,7 +137,17 @@ class SteeringCost:
         stride: steps per token; ``dt``: s per step.
     """
 
-    def __init__(self, v, limit, pose, cands, std: float, mean: float, stride: int, dt: float):
+    def __init__(
+        self,
+        v: np.ndarray,
+        limit: np.ndarray,
+        pose: np.ndarray,
+        cands: tuple[np.ndarray, ...],
+        std: float,
+        mean: float,
+        stride: int,
+        dt: float,
+    ) -> None:
         self.v, self.limit, self.pose, self.cands = v, limit, pose, cands
         self.std, self.mean, self.stride, self.dt = std, mean, stride, dt
         ca, cb, ch, cok, first, last = cands

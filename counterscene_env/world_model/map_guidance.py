@@ -132,7 +132,9 @@ def off_lane_loss(
     return (excess * ok).sum() / ok.float().sum().clamp(min=1)
 
 
-def on_lane_agents(model, batch: dict[str, torch.Tensor], num_samples: int):
+def on_lane_agents(
+    model, batch: dict[str, torch.Tensor], num_samples: int
+) -> tuple[torch.Tensor, ...]:
     """The window's lanes and the agents' current states, repeated for ``num_samples`` samples
     per scene (``N = B * S`` rows), and ``guided [N, K]``: the real agents on a lane now."""
     lanes = batch["map"].repeat_interleave(num_samples, 0)  # [N, M, P, 2]
