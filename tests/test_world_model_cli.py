@@ -394,6 +394,9 @@ def test_full_bench_json_has_every_figure(capsys):
     assert set(r["vector_env_steps_per_s"]) == set(r["vector_env_stored_scenes_steps_per_s"])
     assert r["vector_env_steps_per_s"]["2"] > 0
     assert r["highway_env_steps_per_s"] > 0 and r["env_steps_per_s"] > 0
+    # The anchor is timed before and after ours, and the figure is their mean.
+    runs = r["runs"]["anchor"]["runs_steps_per_s"]
+    assert len(runs) == 2 and r["highway_env_steps_per_s"] == pytest.approx(sum(runs) / 2)
     assert r["env_vs_highway_env"] == pytest.approx(
         r["env_steps_per_s"] / r["highway_env_steps_per_s"]
     )

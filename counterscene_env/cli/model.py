@@ -231,9 +231,11 @@ def _full_bench(args: argparse.Namespace) -> int:
         print(json.dumps(json_safe(r)))
         return 0
     print(f"torch threads {torch.get_num_threads()}; {args.steps} env steps each")
+    before, after = r["runs"]["anchor"]["runs_steps_per_s"]
     print(
         f"  highway-env {r['runs']['anchor']['env']} (IDM, 10 Hz): "
-        f"{r['highway_env_steps_per_s']:.1f} steps/s"
+        f"{r['highway_env_steps_per_s']:.1f} steps/s (before and after ours: {before:.1f}, "
+        f"{after:.1f})"
     )
     print(
         f"  CounterScene-v0 (default config): {r['env_steps_per_s']:.1f} steps/s = "
