@@ -17,7 +17,6 @@ from typing import Any, ClassVar
 import numpy as np
 from gymnasium import spaces
 from highway_env.envs.common.abstract import AbstractEnv
-from highway_env.envs.common.observation import KinematicObservation
 from highway_env.vehicle.kinematics import Vehicle
 
 from counterscene_env import metrics
@@ -33,12 +32,11 @@ from counterscene_env.envs.mirror import Mirror, build_mirror, sync_mirror
 from counterscene_env.envs.outcome import ends_episode, reward_terms, step_info, weighted_reward
 from counterscene_env.envs.render import EpisodeView, render_frame, view_of
 from counterscene_env.envs.spaces import (
-    LANE_FREE_FEATURES,
-    RowCappedKinematics,
     as_highway_action,
-    bounded_space,
+    capped_observation_space,
     check_action,
     kept_if_unchanged,
+    reads_lanes,
 )
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.prefetch import one_thread_if
@@ -191,24 +189,10 @@ class CounterSceneEnv(AbstractEnv):
         equal to the one before is kept, with its generator (``kept_if_unchanged``)."""
         before = self.__dict__.get("action_space"), self.__dict__.get("observation_space")
         super().define_spaces()
-        per_ego = getattr(self.observation_type, "agents_observation_types", None)
-        for t in per_ego or [self.observation_type]:
-            if type(t) is KinematicObservation:
-                t.__class__ = RowCappedKinematics
-        obs = self.config["observation"]
-        obs = obs.get("observation_config", obs)
-        self._needs_lanes = not (
-            obs.get("type") == "Kinematics"
-            and set(obs.get("features", KinematicObservation.FEATURES)) <= LANE_FREE_FEATURES
-        )
-        space = self.observation_space
-        if per_ego is None:
-            self.observation_space = bounded_space(space, self.observation_type)
-        else:
-            bounded = [bounded_space(s, t) for s, t in zip(space.spaces, per_ego, strict=True)]
-            self.observation_space = spaces.Tuple(bounded)
+        self._needs_lanes = reads_lanes(self.config["observation"])
+        space = capped_observation_space(self.observation_type, self.observation_space)
         self.action_space = kept_if_unchanged(before[0], self.action_space)
-        self.observation_space = kept_if_unchanged(before[1], self.observation_space)
+        self.observation_space = kept_if_unchanged(before[1], space)
 
     @property
     def sim_config(self) -> SimConfig:

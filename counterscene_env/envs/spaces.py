@@ -127,3 +127,24 @@ def kept_if_unchanged(old: spaces.Space | None, new: spaces.Space) -> spaces.Spa
     to be reproducible across episodes. Keeping an unchanged space keeps its generator.
     """
     return old if old is not None and old == new else new
+
+
+def capped_observation_space(obs_type: Any, space: spaces.Space) -> spaces.Space:
+    """``space``, highway-env's space of observation type ``obs_type`` (one per ego under
+    ``MultiAgentObservation``), bounded by :func:`bounded_space`; every ``Kinematics`` type
+    of it becomes a :class:`RowCappedKinematics` (its rows kept to ``vehicles_count``)."""
+    per_ego = getattr(obs_type, "agents_observation_types", None)
+    for t in per_ego or [obs_type]:
+        if type(t) is KinematicObservation:
+            t.__class__ = RowCappedKinematics
+    if per_ego is None:
+        return bounded_space(space, obs_type)
+    return spaces.Tuple([bounded_space(s, t) for s, t in zip(space.spaces, per_ego, strict=True)])
+
+
+def reads_lanes(observation: dict) -> bool:
+    """Whether an observation config reads lane coordinates, so that every vehicle's lane
+    must be kept up to date (costly on big maps)."""
+    obs = observation.get("observation_config", observation)
+    features = set(obs.get("features", KinematicObservation.FEATURES))
+    return not (obs.get("type") == "Kinematics" and features <= LANE_FREE_FEATURES)

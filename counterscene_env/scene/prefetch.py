@@ -148,17 +148,8 @@ class Prefetch:
         if self.scene is not None or self.failed or self.recorder.started(self.ticket):
             return
         self.recorder.withdraw(self.ticket)
-        road = self.key[0]
         while self.scene is None and not self.failed:
-            scene = _record_here(road, self.seed)
-            if scene is not None:
-                scene.metadata["rejected_seeds"] = self.rejected
-                self.scene = scene
-            elif len(self.rejected) + 1 == _max_attempts():
-                self.failed = True  # generate's error, raised by the caller's own call
-            else:
-                self.rejected.append(self.seed)
-                self.seed += 1
+            self._settle(_record_here(self.key[0], self.seed))
 
     def cancel(self) -> None:
         """Withdraw the recording (the child drops it if it has not begun)."""
@@ -177,15 +168,22 @@ class Prefetch:
             status, scene = self.recorder.result(self.ticket)
             if status != "ok":  # the child died or failed: the caller's call shows why
                 self.failed = True
-            elif scene is not None:
-                scene.metadata["rejected_seeds"] = self.rejected
-                self.scene = scene
-            elif len(self.rejected) + 1 == _max_attempts():
-                self.failed = True  # generate's error, raised by the caller's own call
-            else:
-                self.rejected.append(self.seed)
-                self.seed += 1
+            elif self._settle(scene):
                 self.ticket = self.recorder.submit(self.key[0], self.seed)
+
+    def _settle(self, scene: Scene | None) -> bool:
+        """Take the current seed's recording (None: rejected); True if the next seed is to be
+        recorded, as ``generate`` would try it."""
+        if scene is not None:
+            scene.metadata["rejected_seeds"] = self.rejected
+            self.scene = scene
+        elif len(self.rejected) + 1 == _max_attempts():
+            self.failed = True  # generate's error, raised by the caller's own call
+        else:
+            self.rejected.append(self.seed)
+            self.seed += 1
+            return True
+        return False
 
 
 def safe_scenes_ahead(road: str, seed: int, count: int, ahead: int) -> Iterator[Scene]:

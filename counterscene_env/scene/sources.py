@@ -195,7 +195,9 @@ class SceneSource:
 
     @property
     def recording_ahead(self) -> bool:
-        """Whether a background process is recording a scene for this source right now."""
+        """Whether a background process is recording a scene for this source right now.
+        Asking also moves a rejected recording on to its next seed (``Prefetch.running``), so
+        an env asks at every frame."""
         return any(a is not None and a.running for _, a in self._ahead)
 
     def __getstate__(self) -> dict:

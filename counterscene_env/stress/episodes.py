@@ -20,7 +20,7 @@ from counterscene_env import metrics
 from counterscene_env.config import Scenario
 from counterscene_env.planners import Planner, make_planner
 from counterscene_env.scene.core import Scene
-from counterscene_env.scene.prefetch import available, one_thread_if, recording
+from counterscene_env.scene.prefetch import one_thread_if, recording
 from counterscene_env.scene.sources import is_generated, scenes_for
 from counterscene_env.sim import ClosedLoop
 from counterscene_env.stress.config import StressConfig
@@ -251,7 +251,7 @@ def drive(
     tally = Progress(config, log, progress)
     # The next batch's scenes are recorded in the background while this one runs
     # (scene/prefetch.py; play_batch steps on one torch thread meanwhile).
-    ahead = 2 * config.batch if is_generated(config.scenario) and available() else 0
+    ahead = 2 * config.batch if is_generated(config.scenario) else 0  # scenes_for: if it can
     try:
         for first, scenes in chunks(config, tally.records, ahead):
             tally.add(runner(first, scenes))
