@@ -121,6 +121,16 @@ class GuidancePreset(Choice):
     NONE = "none"
 
 
+class GuidanceProgress(Choice):
+    """What the guidance's progress p measures (the stage multiplier and the compression)."""
+
+    __label__ = "guidance progress"
+    #: Closed-loop step over the horizon (the paper's appendix and its public code).
+    ROLLOUT = "rollout"
+    #: Denoising progress, 1 - t / K (the paper's main text).
+    DENOISING = "denoising"
+
+
 class Sampler(Choice):
     """The world model's sampler: strided DDIM, or all the DDPM steps."""
 

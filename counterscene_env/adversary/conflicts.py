@@ -39,8 +39,7 @@ Causal mining (``method="causal"``), faithful to the paper:
 What the paper lacks and we add (docs/design.md, "Strict selection gates"): optional
 *strict* gates (on by default in :func:`select_adversary`, off in the paper preset) that
 withdraw the tier of a conflict that the guidance cannot realistically turn into a near miss:
-``d_min >= 15 m``, for a crossing (``intersection``) conflict an arrival gap >= 1.5 s, an
-encounter on the last jointly valid step (truncated by the horizon, so not a real closest
+``d_min >= 15 m``, an encounter on the last jointly valid step (truncated by the horizon, so not a real closest
 approach) or, for both, on the first (the two are closest *now* and drift apart: no conflict
 lies ahead for the guidance to sharpen; side-by-side cars at a junction are the common case),
 or a candidate that does not move (mean speed <= 1 m/s).
@@ -84,12 +83,10 @@ FALLBACK_WEIGHT = -50.0
 #: Two agents that never come within this (m) of each other are no conflict worth guiding:
 #: the paper's tier 1 has no distance limit at all, so a car on a far parallel road qualifies.
 STRICT_MAX_DISTANCE = 15.0
-#: Arrival gap (s) above which two *crossing* agents pass the conflict point at unrelated
-#: times; the progressive guidance can compress a gap, but only a short one without
-#: implausible motion. Following conflicts are exempt: their "gap" is the time headway at
-#: which one reaches the other's path, ordinary for a follower, and it is the closing of
-#: exactly that headway that the guidance turns into a rear-end conflict.
-STRICT_MAX_GAP = 1.5
+# No arrival-gap gate beyond tier 1's 5 s: a 1.5 s gate for crossing conflicts stood here
+# until 26 Nov 2026. With the guidance's arrival-time compression active at every replan
+# (its progress measured in denoising steps, the paper's main text) the crossings it let
+# through are hit as often as the ones it kept (docs/closed_loop.md).
 #: Mean speed (m/s) over its valid steps that a candidate must exceed: guidance acts on the
 #: adversary's actions, and a parked car's "encounter" is only the ego driving past it.
 STRICT_MIN_SPEED = 1.0
@@ -346,19 +343,17 @@ def mean_speed(tracks: Tracks, agent: int) -> float:
 
 
 #: The strict gates by name, in the order :func:`strict_gate_failures` reports them.
-STRICT_GATES = ("far", "late", "truncated", "drifting_apart", "parked")
+STRICT_GATES = ("far", "truncated", "drifting_apart", "parked")
 
 
 def strict_gate_failures(tracks: Tracks, conflict: Conflict, start_step: int) -> list[str]:
     """The strict gates (module constants) a conflict fails, by name (:data:`STRICT_GATES`):
-    ``far`` (d_min), ``late`` (arrival gap, crossing conflicts only), ``truncated`` (closest on
-    the last jointly valid step), ``drifting_apart`` (both closest on the first), ``parked``
-    (mean speed)."""
+    ``far`` (d_min), ``truncated`` (closest on the last jointly valid step),
+    ``drifting_apart`` (both closest on the first), ``parked`` (mean speed)."""
     joint = np.flatnonzero(tracks.valid[tracks.ego] & tracks.valid[conflict.agent])
     first, last = start_step + int(joint[0]), start_step + int(joint[-1])
     failed = {
         "far": conflict.min_distance >= STRICT_MAX_DISTANCE,
-        "late": conflict.type == INTERSECTION and conflict.arrival_gap >= STRICT_MAX_GAP,
         "truncated": last in (conflict.ego_step, conflict.adversary_step),
         "drifting_apart": conflict.ego_step == conflict.adversary_step == first,
         "parked": mean_speed(tracks, conflict.agent) <= STRICT_MIN_SPEED,
@@ -449,7 +444,7 @@ def mine_conflicts(
         eligible: ``[N] bool`` rows that may be candidates (e.g. vehicles only); None: all.
         dt: s per step.
         start_step: absolute episode step of index 0.
-        strict: apply the strict gates (d_min, arrival gap, last step, moving): a conflict
+        strict: apply the strict gates (d_min, last or first step, moving): a conflict
             failing one gets ``tier=None``. False is the paper.
         min_joint_steps: jointly valid steps a candidate needs.
 

@@ -45,7 +45,7 @@ from counterscene_env.adversary.conflicts import (
     REAR_APPROACH,
     Conflict,
 )
-from counterscene_env.config import GuidancePreset, from_mapping
+from counterscene_env.config import GuidancePreset, GuidanceProgress, from_mapping
 from counterscene_env.world_model.map_guidance import ON_LANE_TOLERANCE, lane_excess
 
 #: Adam's epsilon: the sign-like step is ``lr * g / (|g| + ADAM_EPS)``.
@@ -65,8 +65,10 @@ class GuidanceConfig:
         map_weight: weight of the adversary's off-lane term (paper: 2.0, not scaled by m(p)).
         step_size: learning rate of the sign-like step, normalised action units (0.3).
         inner_steps: gradient steps per denoising step (their sum is clipped to +-sigma_t).
-        progress: what p measures: ``"rollout"`` (closed-loop step / horizon, the appendix and
-            the public code) or ``"denoising"`` (the paper's main text).
+        progress: what p measures: ``"denoising"`` (the paper's main text, 1 - t / K: every
+            replan's last steps are its late stage, compressing the arrival gap fully) or
+            ``"rollout"`` (closed-loop step / horizon, the appendix and the public code: no
+            compression before half the episode; our default before 26 Nov 2026).
         clip_scale: the step is clipped to +-``clip_scale`` sigma_t (our reference: 1).
         final_step_size: the paper's final-step guidance (implementation table: Adam, lr 0.3,
             1 step): at the last denoising step, which adds no noise and whose mean is the
@@ -86,14 +88,13 @@ class GuidanceConfig:
     map_weight: float = 2.0
     step_size: float = 0.3
     inner_steps: int = 1
-    progress: str = "rollout"
+    progress: str = GuidanceProgress.DENOISING.value
     clip_scale: float = 1.0
     final_step_size: float = 0.3
     evaluate_on: str = "mean"
 
     def __post_init__(self) -> None:
-        if self.progress not in ("rollout", "denoising"):
-            raise ValueError(f"progress must be 'rollout' or 'denoising', got {self.progress!r}")
+        object.__setattr__(self, "progress", GuidanceProgress.parse(self.progress, "progress"))
         if self.inner_steps < 1:
             raise ValueError(f"inner_steps must be >= 1, got {self.inner_steps}")
         sizes = (self.step_size, self.map_weight, self.clip_scale, self.final_step_size)
@@ -139,6 +140,10 @@ def stage_multiplier(p: float) -> float:
     return 1.5 + (min(p, 1.0) - 0.7) / 0.3 * (3.0 - 1.5)
 
 
+#: Progress from which arrival-time compression is active (appendix: p >= 0.5).
+COMPRESSION_START = 0.5
+
+
 def compressed_arrivals(tau_e: float, tau_a: float, p: float) -> tuple[float, float]:
     """Target arrival steps (tau_e^, tau_a^) after compression (appendix, Algorithm 2).
 
@@ -146,7 +151,7 @@ def compressed_arrivals(tau_e: float, tau_a: float, p: float) -> tuple[float, fl
     one's step plus ``|tau_e - tau_a| (1 - p)``, so the gap closes linearly to 0 at p = 1.
     The result is not rounded (the caller rounds and clips to its window).
     """
-    if p < 0.5:
+    if p < COMPRESSION_START:
         return float(tau_e), float(tau_a)
     gap = abs(tau_e - tau_a) * (1.0 - p)
     if tau_e <= tau_a:
@@ -263,9 +268,9 @@ def _schedule(
         else torch.ones_like(p)
     )
     te, ta = targets.ego_step, targets.adversary_step
-    if config.adaptive:
+    if config.adaptive:  # compressed_arrivals, row-wise
         gap = (te - ta).abs() * (1 - p)
-        late = p >= 0.5
+        late = p >= COMPRESSION_START
         te, ta = (
             torch.where(late & (te > ta), ta + gap, te),
             torch.where(late & (ta >= te), te + gap, ta),
@@ -381,7 +386,7 @@ def make_guidance_hook(
         if not has.any():
             return mean
         p = None
-        if config.progress == "denoising":
+        if config.progress == GuidanceProgress.DENOISING:
             p = torch.full((N,), 1.0 - t / K_train)
         if sigma <= 0:
             # The last step adds no noise: its mean is the finished sample. The paper's

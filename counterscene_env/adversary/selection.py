@@ -87,6 +87,19 @@ class Selection:
 # ---------------------------------------------------------------- selectors
 
 
+def passes_first(conflict: Conflict) -> bool:
+    """Whether a crossing conflict's candidate reaches the conflict point before the ego.
+
+    The paper's adversary is the agent whose behaviour keeps the scene safe: at a crossing,
+    the one that arrives after the ego, leaving it the time to clear (its temporal guidance
+    compresses exactly that margin). A candidate that passes first was not holding back for
+    the ego; the ego held back for it. The paper's score ``v_rel / (gap + 0.5)`` does not
+    tell the two apart (docs/closed_loop.md, "Why the guidance did not bite harder").
+    """
+    return conflict.type == INTERSECTION and conflict.adversary_step < conflict.ego_step
+
+
+
 def _first_joint_steps(tracks: Tracks, agents: np.ndarray) -> np.ndarray:
     """``[P]`` int: each agent's earliest step jointly valid with the ego (they all have one)."""
     joint = tracks.valid[agents] & tracks.valid[tracks.ego][None]  # [P, T]
@@ -157,6 +170,7 @@ def select_adversary(
     strict: bool = True,
     rng: np.random.Generator | None = None,
     min_joint_steps: int = MIN_JOINT_STEPS,
+    yielders_first: bool = False,
 ) -> Selection:
     """Choose the adversary and its conflict with one of ``METHODS``.
 
@@ -181,6 +195,9 @@ def select_adversary(
         strict: the strict gates (see module doc); False is the paper preset.
         rng: required for ``random``.
         min_joint_steps: jointly valid steps a candidate needs.
+        yielders_first: ``causal`` only: a crossing conflict whose candidate reaches the
+            conflict point before the ego ranks after every other tiered conflict (ours, see
+            :func:`passes_first`); False is the paper's ``(tier, -score)``.
 
     Returns:
         A :class:`Selection`. Its conflict is the chosen agent's mined conflict (for a baseline
@@ -222,7 +239,10 @@ def select_adversary(
             return Selection(
                 method, None, f"no candidate passed {rules} ({count} candidates)", count
             )
-        best = min(tiered, key=lambda c: (c.tier, -c.score, c.agent))
+        if yielders_first:
+            best = min(tiered, key=lambda c: (passes_first(c), c.tier, -c.score, c.agent))
+        else:
+            best = min(tiered, key=lambda c: (c.tier, -c.score, c.agent))
         return Selection(method, best, None, count)
 
     # Baselines: the pool ignores tiers and conflict gates; strict keeps only movers, as

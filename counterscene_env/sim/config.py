@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 from counterscene_env.config import (
     GuidancePreset,
+    GuidanceProgress,
     Sampler,
     SelectionSource,
     Selector,
@@ -37,9 +38,14 @@ class SimConfig:
             (nearest), ttc (smallest time to collision).
         selection_source: log (mined once on the factual future) or model (mined at every
             replan on the world model's unguided prediction).
-        strict_gates: the strict selection gates (d_min < 15 m, arrival gap < 1.5 s,
-            encounter before the last step, adversary moving; docs/design.md, "Causal
+        strict_gates: the strict selection gates (d_min < 15 m, encounter neither on the
+            last step nor with both on the first, adversary moving; docs/design.md, "Causal
             adversary selection"); off in the paper.
+        yielders_first: the causal selector ranks a crossing conflict whose candidate
+            reaches the conflict point before the ego after every other one: the adversary
+            is the agent that leaves the ego the time to clear, as the paper describes it,
+            which its score does not check (a departure; docs/closed_loop.md). False: the
+            paper's ranking by tier and score.
         guidance: a guidance preset: full, no_jerk, no_conflict_aware, no_progressive,
             no_adaptive, minimal, none.
         final_step_guidance: the paper's final-step guidance (implementation table: one
@@ -48,6 +54,11 @@ class SimConfig:
             its steps are clipped to that step's noise and barely move the adversary (our
             reference before 25 Nov 2026; docs/closed_loop.md, "Why the guidance did not
             bite harder").
+        guidance_progress: what the guidance's progress p, which sets its stage multiplier
+            and its arrival-time compression, measures: denoising (the paper's main text:
+            every replan compresses the arrival gap by its last steps) or rollout (closed-loop
+            step over the horizon, the paper's appendix and public code: no compression in
+            the episode's first half; docs/closed_loop.md).
         sampler: the world model's sampler, ddim or ddpm (None: the model's default).
         sampling_steps: denoising steps of the strided sampler (None: the model's default).
         eta: noise scale of the strided sampler, 0 (DDIM) to 1 (DDPM posterior) (None: the
@@ -94,8 +105,10 @@ class SimConfig:
     selector: str = choice_field(Selector, Selector.CAUSAL)
     selection_source: str = choice_field(SelectionSource, SelectionSource.LOG)
     strict_gates: bool = True
+    yielders_first: bool = True
     guidance: str = choice_field(GuidancePreset, GuidancePreset.FULL)
     final_step_guidance: bool = True
+    guidance_progress: str = choice_field(GuidanceProgress, GuidanceProgress.DENOISING)
     sampler: str | None = choice_field(Sampler, None)
     sampling_steps: int | None = bounded(None, ge=1)
     eta: float | None = bounded(None, ge=0)

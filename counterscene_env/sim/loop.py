@@ -91,6 +91,7 @@ class ClosedLoop:
         self.model = model.eval()
         self.config = config or SimConfig()
         self.guidance = guidance_preset(self.config.guidance)
+        self.guidance = dataclasses.replace(self.guidance, progress=self.config.guidance_progress)
         if not self.config.final_step_guidance:
             self.guidance = dataclasses.replace(self.guidance, final_step_size=0.0)
         self.replanner = Replanner(self.model, self.config, self.guidance)

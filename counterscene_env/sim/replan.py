@@ -99,6 +99,7 @@ class Replanner:
             dt=scene.dt,
             start_step=start_step,
             strict=self.config.strict_gates,
+            yielders_first=self.config.yielders_first,
             rng=ep.rng,
         )
         if sel.conflict is not None:  # back to scene rows
