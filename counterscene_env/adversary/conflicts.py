@@ -39,8 +39,8 @@ Causal mining (``method="causal"``), faithful to the paper:
 What the paper lacks and we add (docs/design.md, "Strict selection gates"): optional
 *strict* gates (on by default in :func:`select_adversary`, off in the paper preset) that
 withdraw the tier of a conflict that the guidance cannot realistically turn into a near miss:
-``d_min >= 15 m``, an encounter on the last jointly valid step (truncated by the horizon, so not a real closest
-approach) or, for both, on the first (the two are closest *now* and drift apart: no conflict
+``d_min >= 15 m``, an encounter on the last jointly valid step (truncated by the horizon, so
+not a real closest approach) or, for both, on the first (the two are closest *now* and drift apart: no conflict
 lies ahead for the guidance to sharpen; side-by-side cars at a junction are the common case),
 or a candidate that does not move (mean speed <= 1 m/s).
 """

@@ -94,10 +94,9 @@ def passes_first(conflict: Conflict) -> bool:
     the one that arrives after the ego, leaving it the time to clear (its temporal guidance
     compresses exactly that margin). A candidate that passes first was not holding back for
     the ego; the ego held back for it. The paper's score ``v_rel / (gap + 0.5)`` does not
-    tell the two apart (docs/closed_loop.md, "Why the guidance did not bite harder").
+    tell the two apart (docs/closed_loop.md, "What changed on 26 Nov 2026").
     """
     return conflict.type == INTERSECTION and conflict.adversary_step < conflict.ego_step
-
 
 
 def _first_joint_steps(tracks: Tracks, agents: np.ndarray) -> np.ndarray:
