@@ -238,10 +238,9 @@ def select_adversary(
             return Selection(
                 method, None, f"no candidate passed {rules} ({count} candidates)", count
             )
-        if yielders_first:
-            best = min(tiered, key=lambda c: (passes_first(c), c.tier, -c.score, c.agent))
-        else:
-            best = min(tiered, key=lambda c: (c.tier, -c.score, c.agent))
+        best = min(
+            tiered, key=lambda c: (yielders_first and passes_first(c), c.tier, -c.score, c.agent)
+        )
         return Selection(method, best, None, count)
 
     # Baselines: the pool ignores tiers and conflict gates; strict keeps only movers, as

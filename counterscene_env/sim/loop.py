@@ -90,10 +90,12 @@ class ClosedLoop:
     def __init__(self, model: WorldModel, config: SimConfig | None = None) -> None:
         self.model = model.eval()
         self.config = config or SimConfig()
-        self.guidance = guidance_preset(self.config.guidance)
-        self.guidance = dataclasses.replace(self.guidance, progress=self.config.guidance_progress)
-        if not self.config.final_step_guidance:
-            self.guidance = dataclasses.replace(self.guidance, final_step_size=0.0)
+        preset = guidance_preset(self.config.guidance)
+        self.guidance = dataclasses.replace(
+            preset,
+            progress=self.config.guidance_progress,
+            final_step_size=preset.final_step_size if self.config.final_step_guidance else 0.0,
+        )
         self.replanner = Replanner(self.model, self.config, self.guidance)
         #: The episodes of the current batch (public records, read-only outside ``sim/``).
         self.episodes: list[Episode] = []
