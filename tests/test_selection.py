@@ -12,6 +12,7 @@ import math
 import numpy as np
 import pytest
 
+from counterscene_env.adversary.conflicts import check_tracks
 from counterscene_env.adversary.selection import (
     FOLLOWING,
     INTERSECTION,
@@ -21,6 +22,8 @@ from counterscene_env.adversary.selection import (
     Conflict,
     encounter,
     mine_conflicts,
+    reachable,
+    required_acceleration,
     select_adversary,
 )
 
@@ -296,6 +299,47 @@ def test_yielders_first_ranks_a_crosser_that_passes_before_the_ego_last():
     # Only passers-by: yielders_first still picks one of them.
     positions, valid = stack(ego_track(), early)
     picked = select_adversary("causal", positions, valid, 0, dt=DT, yielders_first=True)
+    assert picked.conflict.agent == 1
+
+
+def late_sprinter() -> np.ndarray:
+    """North along x = 20: 5 m/s for 2 s, then 30 m/s: at (20, 0) at index 30, 1 s after the
+    ego. Only its logged sprint gets it there: from 5 m/s it needs 15 m/s^2 over the 2 s
+    until the ego arrives (2 (40 - 5 x 2) / 2^2)."""
+    y = np.where(STEPS <= 20, -40.0 + 0.5 * STEPS, -30.0 + 3.0 * (STEPS - 20))
+    return track(20.0, y)
+
+
+def test_required_acceleration_is_what_takes_the_candidate_there_by_the_ego_arrival():
+    positions, valid = stack(ego_track(), yielding_crosser(), late_sprinter())
+    tracks = check_tracks(positions, valid, 0, speeds=None, dt=DT, min_joint_steps=5)
+    mined = by_agent(mine_conflicts(positions, valid, 0, dt=DT))
+    # The yielding crosser covers its 20 m in the ego's 2 s at its present 10 m/s.
+    assert required_acceleration(tracks, mined[1], 0) == pytest.approx(0.0, abs=1e-9)
+    assert reachable(tracks, mined[1], 0)
+    assert required_acceleration(tracks, mined[2], 0) == pytest.approx(15.0)
+    assert not reachable(tracks, mined[2], 0)
+    # A follower on the ego's own line meets the ego's present place: 5 m in 0.2 s from
+    # 12.5 m/s (its encounter is the ego's position at index 2).
+    rear = track(-3.0 + 1.25 * STEPS, 0.0)
+    positions, valid = stack(ego_track(), rear)
+    tracks = check_tracks(positions, valid, 0, speeds=None, dt=DT, min_joint_steps=5)
+    (conflict,) = mine_conflicts(positions, valid, 0, dt=DT)
+    assert (conflict.ego_step, conflict.adversary_step) == (2, 4)
+    assert required_acceleration(tracks, conflict, 0) == pytest.approx(125.0)
+
+
+def test_reachable_first_ranks_a_conflict_the_candidate_cannot_make_last():
+    positions, valid = stack(ego_track(), late_sprinter(), yielding_crosser())
+    mined = by_agent(mine_conflicts(positions, valid, 0, dt=DT, strict=True))
+    assert mined[1].tier == mined[2].tier == 1
+    assert mined[1].score > mined[2].score  # the paper takes the sprinter
+    assert select_adversary("causal", positions, valid, 0, dt=DT).conflict.agent == 1
+    picked = select_adversary("causal", positions, valid, 0, dt=DT, reachable_first=True)
+    assert picked.conflict.agent == 2
+    # Nothing reachable: the best unreachable conflict is still the adversary.
+    positions, valid = stack(ego_track(), late_sprinter())
+    picked = select_adversary("causal", positions, valid, 0, dt=DT, reachable_first=True)
     assert picked.conflict.agent == 1
 
 

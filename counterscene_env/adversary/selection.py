@@ -53,12 +53,15 @@ __all__ = [
     "FOLLOWING",
     "INTERSECTION",
     "LEAD_BRAKING",
+    "MAX_REACH_ACCELERATION",
     "METHODS",
     "REAR_APPROACH",
     "Conflict",
     "Selection",
     "encounter",
     "mine_conflicts",
+    "reachable",
+    "required_acceleration",
     "select_adversary",
 ]
 
@@ -97,6 +100,47 @@ def passes_first(conflict: Conflict) -> bool:
     tell the two apart (docs/closed_loop.md, "What changed on 26 Nov 2026").
     """
     return conflict.type == INTERSECTION and conflict.adversary_step < conflict.ego_step
+
+
+#: Acceleration [m/s^2] up to which an adversary counts as able to reach its conflict point by
+#: the ego's arrival (:func:`reachable`): a passenger car at full throttle (0-100 km/h in
+#: about 7 s). The guidance can ask for more, but the world model, trained on real and IDM
+#: driving, does not follow (docs/closed_loop.md, "What changed on 27 Nov 2026").
+MAX_REACH_ACCELERATION = 4.0
+
+
+def required_acceleration(tracks: Tracks, conflict: Conflict, start_step: int) -> float:
+    """m/s^2: the constant acceleration that takes the candidate from its first valid step,
+    at its speed there, along its own path to its end of the encounter by the ego's arrival.
+
+    ``a = 2 (D - v T) / T^2`` with ``D`` m the candidate's path length to ``tau_a``, ``v``
+    m/s its speed at its first valid step and ``T`` s the time from that step to ``tau_e``.
+    Negative: at its present speed it would be there early. ``inf`` when the ego arrives
+    before the candidate is valid at all (``T <= 0``).
+    """
+    agent = conflict.agent
+    steps = np.flatnonzero(tracks.valid[agent])
+    first = int(steps[0])
+    T = (conflict.ego_step - start_step - first) * tracks.dt
+    if T <= 0:
+        return math.inf
+    upto = steps[steps <= conflict.adversary_step - start_step]
+    path = tracks.positions[agent, upto]  # [S, 2] m, valid steps only
+    D = float(np.hypot(*np.diff(path, axis=0).T).sum()) if len(upto) > 1 else 0.0
+    v = float(tracks.speeds[agent, first])
+    return 2.0 * (D - v * T) / T**2
+
+
+def reachable(tracks: Tracks, conflict: Conflict, start_step: int) -> bool:
+    """Whether the guidance's arrival-time compression can act on a conflict: the candidate
+    arrives after the ego (the compression moves the later agent's arrival, and the ego is
+    not guided) and can make up the gap at no more than :data:`MAX_REACH_ACCELERATION`.
+    A conflict whose point the ego occupies now (a follower's encounter on a shared path is
+    often the ego's present place) needs an unbounded acceleration and is never reachable.
+    """
+    if conflict.adversary_step < conflict.ego_step:
+        return False
+    return required_acceleration(tracks, conflict, start_step) <= MAX_REACH_ACCELERATION
 
 
 def _first_joint_steps(tracks: Tracks, agents: np.ndarray) -> np.ndarray:
@@ -170,6 +214,7 @@ def select_adversary(
     rng: np.random.Generator | None = None,
     min_joint_steps: int = MIN_JOINT_STEPS,
     yielders_first: bool = False,
+    reachable_first: bool = False,
 ) -> Selection:
     """Choose the adversary and its conflict with one of ``METHODS``.
 
@@ -197,6 +242,9 @@ def select_adversary(
         yielders_first: ``causal`` only: a crossing conflict whose candidate reaches the
             conflict point before the ego ranks after every other tiered conflict (ours, see
             :func:`passes_first`); False is the paper's ``(tier, -score)``.
+        reachable_first: ``causal`` only: a conflict the candidate cannot reach by the ego's
+            arrival (:func:`reachable`) ranks after every reachable one (ours); it comes
+            before ``yielders_first`` in the ranking key.
 
     Returns:
         A :class:`Selection`. Its conflict is the chosen agent's mined conflict (for a baseline
@@ -239,7 +287,14 @@ def select_adversary(
                 method, None, f"no candidate passed {rules} ({count} candidates)", count
             )
         best = min(
-            tiered, key=lambda c: (yielders_first and passes_first(c), c.tier, -c.score, c.agent)
+            tiered,
+            key=lambda c: (
+                reachable_first and not reachable(tracks, c, start_step),
+                yielders_first and passes_first(c),
+                c.tier,
+                -c.score,
+                c.agent,
+            ),
         )
         return Selection(method, best, None, count)
 

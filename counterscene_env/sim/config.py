@@ -46,6 +46,11 @@ class SimConfig:
             is the agent that leaves the ego the time to clear, as the paper describes it,
             which its score does not check (a departure; docs/closed_loop.md). False: the
             paper's ranking by tier and score.
+        reachable_first: the causal selector ranks a conflict whose candidate cannot reach
+            the conflict point by the ego's arrival (it arrives first, or it would need more
+            than a passenger car's full-throttle 4 m/s^2) after every reachable one: the
+            guidance's arrival-time compression can only act on a reachable conflict (a
+            departure; docs/closed_loop.md). False: the ranking above.
         guidance: a guidance preset: full, no_jerk, no_conflict_aware, no_progressive,
             no_adaptive, minimal, none.
         final_step_guidance: the paper's final-step guidance (implementation table: one
@@ -106,6 +111,7 @@ class SimConfig:
     selection_source: str = choice_field(SelectionSource, SelectionSource.LOG)
     strict_gates: bool = True
     yielders_first: bool = True
+    reachable_first: bool = True
     guidance: str = choice_field(GuidancePreset, GuidancePreset.FULL)
     final_step_guidance: bool = True
     guidance_progress: str = choice_field(GuidanceProgress, GuidanceProgress.DENOISING)

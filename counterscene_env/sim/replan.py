@@ -100,6 +100,7 @@ class Replanner:
             start_step=start_step,
             strict=self.config.strict_gates,
             yielders_first=self.config.yielders_first,
+            reachable_first=self.config.reachable_first,
             rng=ep.rng,
         )
         if sel.conflict is not None:  # back to scene rows
