@@ -105,7 +105,7 @@ def passes_first(conflict: Conflict) -> bool:
 #: Acceleration [m/s^2] up to which an adversary counts as able to reach its conflict point by
 #: the ego's arrival (:func:`reachable`): a passenger car at full throttle (0-100 km/h in
 #: about 7 s). The guidance can ask for more, but the world model, trained on real and IDM
-#: driving, does not follow (docs/closed_loop.md, "What changed on 27 Nov 2026").
+#: driving, does not follow (docs/closed_loop.md, "Reachable conflicts first").
 MAX_REACH_ACCELERATION = 4.0
 
 
