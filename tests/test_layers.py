@@ -20,6 +20,7 @@ LAYERS = {
     "dynamics": 0,
     "scene": 1,
     "metrics": 1,
+    "adversary.tracks": 2,
     "adversary.conflicts": 2,
     "adversary.selection": 2,
     "world_model": 3,

@@ -12,7 +12,6 @@ import math
 import numpy as np
 import pytest
 
-from counterscene_env.adversary.conflicts import check_tracks
 from counterscene_env.adversary.selection import (
     FOLLOWING,
     INTERSECTION,
@@ -26,6 +25,7 @@ from counterscene_env.adversary.selection import (
     required_acceleration,
     select_adversary,
 )
+from counterscene_env.adversary.tracks import check_tracks
 
 DT = 0.1
 T = 60

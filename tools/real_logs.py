@@ -49,10 +49,10 @@ import numpy as np
 from counterscene_env.adversary.conflicts import (
     MIN_JOINT_STEPS,
     STRICT_GATES,
-    check_tracks,
     mine,
     strict_gate_failures,
 )
+from counterscene_env.adversary.tracks import check_tracks
 from counterscene_env.metrics import evaluate_scene, path_speeds, wilson_interval
 from counterscene_env.scene.core import Scene
 

@@ -22,8 +22,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from counterscene_env.adversary.conflicts import (
-    _HEADING_MIN_SPEED,
-    DEFAULT_EXTENT,
     DIRECTION_EPS,
     FALLBACK_WEIGHT,
     FOLLOWING,
@@ -32,18 +30,19 @@ from counterscene_env.adversary.conflicts import (
     MIN_JOINT_STEPS,
     REAR_APPROACH,
     STRICT_MIN_SPEED,
-    TTC_HORIZON,
     Conflict,
-    Tracks,
-    _check_finite_where_valid,
-    _travel_direction,
-    check_eligible,
-    check_start_step,
-    check_tracks,
     encounter,
-    mean_speed,
     mine,
     mine_conflicts,
+)
+from counterscene_env.adversary.tracks import (
+    Tracks,
+    check_eligible,
+    check_finite_where_valid,
+    check_start_step,
+    check_tracks,
+    mean_speed,
+    travel_direction,
 )
 from counterscene_env.config import Selector
 from counterscene_env.geometry import box_time_to_collision
@@ -64,6 +63,14 @@ __all__ = [
     "required_acceleration",
     "select_adversary",
 ]
+
+# ---------------------------------------------------------------- baselines
+#: Constant-velocity look-ahead of the ``ttc`` selector, s (CCDiff-style).
+TTC_HORIZON = 10.0
+#: Box (length, width) m when ``extents`` is not given: a passenger car.
+DEFAULT_EXTENT = (4.5, 2.0)
+#: Below this speed (m/s) a finite-difference velocity gives no heading for the ``ttc`` boxes.
+HEADING_MIN_SPEED = 0.1
 
 #: The selection methods (:class:`~counterscene_env.config.Selector`).
 METHODS = Selector.values()
@@ -104,8 +111,8 @@ def passes_first(conflict: Conflict) -> bool:
 
 #: Acceleration [m/s^2] up to which an adversary counts as able to reach its conflict point by
 #: the ego's arrival (:func:`reachable`): a passenger car at full throttle (0-100 km/h in
-#: about 7 s). The guidance can ask for more, but the world model, trained on real and IDM
-#: driving, does not follow (docs/closed_loop.md, "Reachable conflicts first").
+#: about 7 s). A physical bound, not a value fitted to the runs (docs/closed_loop.md,
+#: "Reachable conflicts first").
 MAX_REACH_ACCELERATION = 4.0
 
 
@@ -136,7 +143,7 @@ def reachable(tracks: Tracks, conflict: Conflict, start_step: int) -> bool:
     arrives after the ego (the compression moves the later agent's arrival, and the ego is
     not guided) and can make up the gap at no more than :data:`MAX_REACH_ACCELERATION`.
     A conflict whose point the ego occupies now (a follower's encounter on a shared path is
-    often the ego's present place) needs an unbounded acceleration and is never reachable.
+    often the ego's present place) would need the candidate there at once: it is not.
     """
     if conflict.adversary_step < conflict.ego_step:
         return False
@@ -163,8 +170,8 @@ def _headings(
     vel = tracks.velocities[agents, steps]  # [P, 2]
     out = np.arctan2(vel[:, 1], vel[:, 0])
     for k, (agent, v) in enumerate(zip(agents, vel, strict=True)):
-        if np.hypot(*v) < _HEADING_MIN_SPEED:
-            d = _travel_direction(tracks.positions[agent], tracks.valid[agent])
+        if np.hypot(*v) < HEADING_MIN_SPEED:
+            d = travel_direction(tracks.positions[agent], tracks.valid[agent])
             out[k] = math.atan2(d[1], d[0]) if np.hypot(*d) >= DIRECTION_EPS else 0.0
     return out
 
@@ -194,7 +201,7 @@ def _check_yaws(yaws: np.ndarray | None, valid: np.ndarray) -> np.ndarray | None
     yaws = np.asarray(yaws, dtype=np.float64)
     if yaws.shape != valid.shape:
         raise ValueError(f"yaws must be [N, T] = {valid.shape} like positions, got {yaws.shape}")
-    _check_finite_where_valid(yaws, valid, "yaws")
+    check_finite_where_valid(yaws, valid, "yaws")
     return yaws
 
 

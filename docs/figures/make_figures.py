@@ -31,12 +31,12 @@ import torch
 
 from counterscene_env.adversary.conflicts import (
     MIN_JOINT_STEPS,
-    check_tracks,
     mine_conflicts,
     strict_gate_failures,
 )
 from counterscene_env.adversary.guidance import compressed_arrivals, stage_multiplier
 from counterscene_env.adversary.selection import select_adversary
+from counterscene_env.adversary.tracks import check_tracks
 from counterscene_env.geometry import box_corners, from_frame
 from counterscene_env.metrics import evaluate_scene
 from counterscene_env.planners import IDMPlanner
