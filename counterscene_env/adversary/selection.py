@@ -45,7 +45,7 @@ from counterscene_env.adversary.tracks import (
     travel_direction,
 )
 from counterscene_env.config import Selector
-from counterscene_env.geometry import box_time_to_collision
+from counterscene_env.geometry import arc_length, box_time_to_collision
 
 __all__ = [
     "FALLBACK_WEIGHT",
@@ -132,8 +132,7 @@ def required_acceleration(tracks: Tracks, conflict: Conflict, start_step: int) -
     if T <= 0:
         return math.inf
     upto = steps[steps <= conflict.adversary_step - start_step]
-    path = tracks.positions[agent, upto]  # [S, 2] m, valid steps only
-    D = float(np.hypot(*np.diff(path, axis=0).T).sum()) if len(upto) > 1 else 0.0
+    D = float(arc_length(tracks.positions[agent, upto])[-1])  # m, along its valid steps
     v = float(tracks.speeds[agent, first])
     return 2.0 * (D - v * T) / T**2
 
