@@ -9,14 +9,16 @@ import torch
 from counterscene_env.adversary.guidance import (
     PRESETS,
     GuidanceConfig,
-    base_weights,
-    compressed_arrivals,
     guidance_loss,
     guidance_preset,
-    jerk,
     make_guidance_hook,
     make_targets,
     pair_paths,
+)
+from counterscene_env.adversary.schedules import (
+    base_weights,
+    compressed_arrivals,
+    jerk,
     stage_multiplier,
 )
 from counterscene_env.adversary.selection import (

@@ -24,6 +24,7 @@ LAYERS = {
     "adversary.conflicts": 2,
     "adversary.selection": 2,
     "world_model": 3,
+    "adversary.schedules": 4,
     "adversary.guidance": 4,
     "adversary": 4,  # the package's lazy re-exports
     "sim": 5,

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from counterscene_env import geometry
 from counterscene_env.world_model.overlap import new_overlaps, overlap_loss, penetration
-from counterscene_env.world_model.train import TrainConfig
+from counterscene_env.world_model.train_config import TrainConfig
 
 boxes = st.integers(0, 2**31 - 1)
 

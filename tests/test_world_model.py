@@ -574,7 +574,7 @@ def test_steering_gradient_is_the_cost_s_derivative(tiny):
 
 
 def test_learning_rate_schedule():
-    from counterscene_env.world_model.train import TrainConfig, learning_rate
+    from counterscene_env.world_model.train_config import TrainConfig, learning_rate
 
     flat = TrainConfig(data=("d",), out="o", steps=100, lr=1e-3)
     assert learning_rate(flat, 0) == learning_rate(flat, 99) == 1e-3

@@ -11,7 +11,8 @@ adversary's action rows takes a step down the gradient of
 
 where x are rolled-out positions (the world model's unicycle), c the mined conflict point,
 (tau_e^, tau_a^) the arrival steps after compression, j the third finite difference of the
-positions (jerk, m/s^3) and m(p) the stage multiplier on the progress p.
+positions (jerk, m/s^3) and m(p) the stage multiplier on the progress p (these schedules and
+weights: ``adversary/schedules.py``).
 
 What the public code gets wrong and we do not (docs/design.md, "Where we depart"): the update reaches the adversary
 only through a *gradient mask* (everyone else's rows are detached before the rollout, and the
@@ -39,11 +40,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from counterscene_env.adversary.conflicts import (
-    INTERSECTION,
-    LEAD_BRAKING,
-    REAR_APPROACH,
-    Conflict,
+from counterscene_env.adversary.conflicts import Conflict
+from counterscene_env.adversary.schedules import (
+    COMPRESSION_START,
+    base_weights,
+    jerk,
+    stage_multiplier,
 )
 from counterscene_env.config import GuidancePreset, GuidanceProgress, from_mapping
 from counterscene_env.world_model.map_guidance import ON_LANE_TOLERANCE, lane_excess
@@ -128,56 +130,6 @@ PRESETS: dict[str, GuidanceConfig] = {
 def guidance_preset(name: str) -> GuidanceConfig:
     """The named preset (:data:`PRESETS`); an unknown name raises and lists the valid ones."""
     return PRESETS[GuidancePreset.parse(name, "guidance")]
-
-
-# ---------------------------------------------------------------------- schedules
-def stage_multiplier(p: float) -> float:
-    """m(p): 0.2 below 0.3, linear 0.2 -> 1.5 on [0.3, 0.7), linear 1.5 -> 3.0 on [0.7, 1]."""
-    if p < 0.3:
-        return 0.2
-    if p < 0.7:
-        return 0.2 + (p - 0.3) / 0.4 * (1.5 - 0.2)
-    return 1.5 + (min(p, 1.0) - 0.7) / 0.3 * (3.0 - 1.5)
-
-
-#: Progress from which arrival-time compression is active (appendix: p >= 0.5).
-COMPRESSION_START = 0.5
-
-
-def compressed_arrivals(tau_e: float, tau_a: float, p: float) -> tuple[float, float]:
-    """Target arrival steps (tau_e^, tau_a^) after compression (appendix, Algorithm 2).
-
-    For p < 0.5 the mined steps; from p = 0.5 the later agent's target moves to the earlier
-    one's step plus ``|tau_e - tau_a| (1 - p)``, so the gap closes linearly to 0 at p = 1.
-    The result is not rounded (the caller rounds and clips to its window).
-    """
-    if p < COMPRESSION_START:
-        return float(tau_e), float(tau_a)
-    gap = abs(tau_e - tau_a) * (1.0 - p)
-    if tau_e <= tau_a:
-        return float(tau_e), float(tau_e + gap)
-    return float(tau_a + gap), float(tau_a)
-
-
-def base_weights(conflict: Conflict, conflict_aware: bool = True) -> tuple[float, float, float]:
-    """(lambda_s, lambda_t, lambda_j) of a conflict (appendix "Conflict-aware base weights")."""
-    s = conflict.score
-    if not conflict_aware:
-        return max(1.5 * s, 0.3), max(1.0 * s, 0.2), 0.5
-    if conflict.subtype == REAR_APPROACH:
-        return max(1.5 * s, 0.3), max(1.0 * s, 0.2), 0.5
-    if conflict.subtype == LEAD_BRAKING:
-        return max(2.5 * s, 0.3), max(0.8 * s, 0.2), 0.8
-    if conflict.type != INTERSECTION:
-        raise ValueError(f"unknown conflict type {conflict.type!r}/{conflict.subtype!r}")
-    return max(2.0 * s, 0.3), max(1.5 * s, 0.2), 0.3
-
-
-def jerk(positions: torch.Tensor, dt: float) -> torch.Tensor:
-    """Mean jerk magnitude [m/s^3] of ``[..., F, 2]`` m positions: third differences / dt^3."""
-    j = torch.diff(positions, n=3, dim=-2) / dt**3
-    # sqrt has an infinite gradient at 0: a straight constant-speed path has jerk exactly 0.
-    return (j.pow(2).sum(-1) + 1e-12).sqrt().mean(-1)
 
 
 # ---------------------------------------------------------------------- per replan targets
@@ -268,7 +220,7 @@ def _schedule(
         else torch.ones_like(p)
     )
     te, ta = targets.ego_step, targets.adversary_step
-    if config.adaptive:  # compressed_arrivals, row-wise
+    if config.adaptive:  # schedules.compressed_arrivals, row-wise
         gap = (te - ta).abs() * (1 - p)
         late = p >= COMPRESSION_START
         te, ta = (

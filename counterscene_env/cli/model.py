@@ -97,7 +97,8 @@ def add_train(sub) -> None:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from counterscene_env.world_model.config import ModelConfig, preset
-    from counterscene_env.world_model.train import TrainConfig, train
+    from counterscene_env.world_model.train import train
+    from counterscene_env.world_model.train_config import TrainConfig
 
     overrides = parse_overrides(args.set)
     ModelConfig.from_mapping({**preset(args.preset).to_dict(), **overrides})  # validate early

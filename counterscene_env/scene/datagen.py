@@ -23,11 +23,15 @@ import hashlib
 import importlib.metadata
 import json
 import os
-import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from pathlib import Path
 
+from counterscene_env.scene.blocks import (
+    convert_commonroad_block,
+    convert_scenarionet_block,
+    generate_block,
+)
 from counterscene_env.scene.shards import ShardError, load_scenes, save_scenes
 
 MANIFEST = "manifest.json"
@@ -65,7 +69,7 @@ def generate_dataset(
     def block_args(k: int, limit: int) -> tuple:
         lo = seed + k * shard_size
         seeds = list(range(lo, lo + shard_size))
-        return (_generate_block, str(out), k, scenario, seeds, duration, limit)
+        return (generate_block, str(out), k, scenario, seeds, duration, limit)
 
     return _build(Path(out), params, scenes, block_args, None, workers, progress)
 
@@ -83,7 +87,9 @@ def convert_scenarionet(
     if not files:
         raise FileNotFoundError(f"{src}: no ScenarioNet .pkl files found")
     params = {"source": "scenarionet"}
-    return _convert_files(src, out, files, params, (_convert_block,), shard_size, workers, progress)
+    return _convert_files(
+        src, out, files, params, (convert_scenarionet_block,), shard_size, workers, progress
+    )
 
 
 def convert_commonroad(
@@ -103,7 +109,7 @@ def convert_commonroad(
     duplicates = duplicate_files(src)
     files = [str(p) for p in commonroad_files(src) if p.name not in duplicates]
     params = {"source": "commonroad", "all_egos": bool(all_egos), "duplicates": duplicates}
-    worker = (_convert_commonroad_block, bool(all_egos))
+    worker = (convert_commonroad_block, bool(all_egos))
     return _convert_files(src, out, files, params, worker, shard_size, workers, progress)
 
 
@@ -393,78 +399,3 @@ def _write_manifest(out: Path, manifest: dict, done: dict[int, dict], target: in
     tmp.write_text(json.dumps(manifest, indent=1))
     os.replace(tmp, out / MANIFEST)
     return manifest
-
-
-# ---------------------------------------------------------------------- block workers
-def _generate_block(
-    out: str, k: int, scenario: str, seeds: list[int], duration: float, limit: int
-) -> dict:
-    """Record the seeds of one block in order, stopping once ``limit`` scenes are safe."""
-    from counterscene_env.scene.highway import GeneratorConfig, RejectedScene, record
-
-    cfg = GeneratorConfig(duration=duration)
-    scenes, rejected = [], []
-    for s in seeds:
-        if len(scenes) >= limit:
-            break
-        try:
-            scenes.append(record(scenario, s, cfg))
-        except RejectedScene as exc:
-            rejected.append([s, str(exc)])
-    entry = _save_block(out, k, scenes, rejected, [int(sc.metadata["seed"]) for sc in scenes])
-    # A block that stopped early does not cover its seeds: a larger rerun must redo it.
-    entry["truncated"] = len(scenes) + len(rejected) < len(seeds)
-    return entry
-
-
-def _convert_block(out: str, k: int, files: list[str]) -> dict:
-    from counterscene_env.scene.core import SceneError
-    from counterscene_env.scene.scenarionet import load_scenarionet
-
-    scenes, rejected = [], []
-    for f in files:
-        start = time.perf_counter()
-        try:
-            scene = load_scenarionet(f)
-        except SceneError as exc:
-            rejected.append([Path(f).name, str(exc)])
-            continue
-        except Exception as exc:  # odd data in one file must not stop the whole conversion
-            rejected.append([Path(f).name, f"{type(exc).__name__}: {exc}"])
-            continue
-        scene.metadata["generation_time_s"] = time.perf_counter() - start
-        scenes.append(scene)
-    return _save_block(
-        out, k, scenes, rejected, [Path(s.metadata.get("source_file", "")).name for s in scenes]
-    )
-
-
-def _convert_commonroad_block(out: str, k: int, files: list[str], all_egos: bool) -> dict:
-    from counterscene_env.scene.commonroad import iter_commonroad
-
-    scenes, rejected = [], []
-    for f in files:
-        report: dict = {}
-        start = time.perf_counter()
-        got = list(iter_commonroad(f, all_egos, skip_duplicates=False, report=report))
-        rejected += [[name, why] for name, why in report["skipped"].items()]
-        for scene in got:
-            scene.metadata["generation_time_s"] = (time.perf_counter() - start) / len(got)
-        scenes += got
-    return _save_block(out, k, scenes, rejected, [s.scenario_id for s in scenes])
-
-
-def _save_block(out: str, k: int, scenes: list, rejected: list, ids: list) -> dict:
-    name = f"shard-{k:05d}.npz"
-    if scenes:
-        save_scenes(scenes, Path(out) / name)
-    return {
-        "block": k,
-        "file": name,
-        "scenes": len(scenes),
-        "seeds": ids,
-        "rejected": rejected,
-        "num_agents": [s.num_agents for s in scenes],
-        "num_steps": [s.num_steps for s in scenes],
-        "gen_time_s": [round(float(s.metadata.get("generation_time_s", 0.0)), 4) for s in scenes],
-    }

@@ -24,15 +24,13 @@ What we add to the stock environments, and why:
 
 Same ``(scenario, seed, duration)``, same scene: all randomness comes from the env's
 ``np_random`` seeded at reset, and the IDM class constants that ``IntersectionEnv`` overwrites
-process-wide are restored after every recording.
+process-wide are restored after every recording (``scene/idm_constants.py``).
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -44,7 +42,6 @@ from highway_env.envs.intersection_env import IntersectionEnv
 from highway_env.envs.merge_env import MergeEnv
 from highway_env.envs.roundabout_env import RoundaboutEnv
 from highway_env.road.lane import LineType, StraightLane
-from highway_env.vehicle.behavior import IDMVehicle
 
 from counterscene_env.config import Scenario
 from counterscene_env.geometry import overlaps_over_time, wrap_angle
@@ -54,6 +51,7 @@ from counterscene_env.scene.highway_vehicle import (
     defer_lane_updates,
     update_lanes,
 )
+from counterscene_env.scene.idm_constants import pristine_idm_constants
 from counterscene_env.scene.road import RoadMap
 
 SCENARIOS = Scenario.values()
@@ -161,7 +159,7 @@ def record(scenario: str, seed: int, config: GeneratorConfig | None = None) -> S
 
 def _simulate(scenario: str, seed: int, cfg: GeneratorConfig) -> tuple[_Recorder, Any, Any, int]:
     """Warm up and run the env, logging every 10 Hz step: (log, ego vehicle, road network, T)."""
-    with _pristine_idm_constants():
+    with pristine_idm_constants():
         env = _make_env(scenario)
         env.reset(seed=int(seed))  # a new road and traffic from this seed alone
         traffic = _Traffic(scenario, env)
@@ -344,48 +342,6 @@ class _Traffic:
             net.add_lane(
                 "d", "e", StraightLane(end, end + np.array([400.0, 0.0]), line_types=line_types)
             )
-
-
-@contextlib.contextmanager
-def _pristine_idm_constants() -> Iterator[None]:
-    """Record with highway-env's own IDM constants, whatever ran before, and leave the
-    caller's as they were.
-
-    Building an ``IntersectionEnv`` (ours, or a user's ``gym.make("intersection-v1")``) sets
-    IDM class constants process-wide; a scene recorded after it would differ from the same
-    seed recorded before it. So the constants are set to :data:`_IDM_DEFAULTS` on entry and
-    the caller's values restored on exit.
-    """
-    saved = {(c, n): c.__dict__.get(n, _MISSING) for c in _IDM_CLASSES for n in _IDM_NAMES}
-    try:
-        _set_idm_constants(_IDM_DEFAULTS)
-        yield
-    finally:
-        _set_idm_constants(saved)
-
-
-def _set_idm_constants(values: dict) -> None:
-    for (c, n), v in values.items():
-        if v is not _MISSING:
-            setattr(c, n, v)
-        elif n in c.__dict__:
-            delattr(c, n)
-
-
-_MISSING = object()
-_IDM_NAMES = ("DISTANCE_WANTED", "COMFORT_ACC_MAX", "COMFORT_ACC_MIN", "TIME_WANTED", "DELTA")
-_IDM_CLASSES = (IDMVehicle, ForwardIDMVehicle)
-#: highway-env's IDM constants as this module found them at import, before any of our envs
-#: existed (``counterscene_env`` is imported before a user builds highway-env envs with it).
-_IDM_DEFAULTS = {(c, n): c.__dict__.get(n, _MISSING) for c in _IDM_CLASSES for n in _IDM_NAMES}
-
-
-def idm_defaults() -> dict[str, float]:
-    """highway-env's ``IDMVehicle`` constants (``DISTANCE_WANTED`` [m], ``COMFORT_ACC_MAX`` and
-    ``COMFORT_ACC_MIN`` [m/s^2], ``TIME_WANTED`` [s], ``DELTA``) as found at import: set on an
-    IDM vehicle instance, they shield it from the process-wide changes highway-env's
-    intersection env makes (``sim/traffic.py``)."""
-    return {n: _IDM_DEFAULTS[(IDMVehicle, n)] for n in _IDM_NAMES}
 
 
 # ---------------------------------------------------------------------- recording

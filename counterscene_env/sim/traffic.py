@@ -16,7 +16,7 @@ from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from counterscene_env.scene.core import Scene
-from counterscene_env.scene.highway import idm_defaults
+from counterscene_env.scene.idm_constants import idm_defaults
 from counterscene_env.sim.state import WorldState
 
 

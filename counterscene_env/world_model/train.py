@@ -15,13 +15,11 @@ FDE at its end [m], over valid agents.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import json
 import os
 import platform
 import time
-from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -32,104 +30,15 @@ from counterscene_env.world_model.checkpoint import save_model
 from counterscene_env.world_model.config import preset as get_preset
 from counterscene_env.world_model.dataset import SceneWindowDataset, load_sources
 from counterscene_env.world_model.model import Normalization, WorldModel
+from counterscene_env.world_model.train_config import (
+    UNSIZED_FIELDS,
+    TrainConfig,
+    learning_rate,
+    plain_settings,
+)
 
 STATE_FILE = "last.pt"
 LOG_FILE = "log.jsonl"
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Settings of one training run.
-
-    Attributes:
-        data: dataset directories (``counterscene generate`` output) or shard files.
-        out: output directory (checkpoints, the EMA model, the log).
-        preset: model preset (``default`` or ``paper``).
-        model_overrides: ModelConfig fields to change from the preset.
-        steps: optimiser steps.
-        batch_size: windows per step.
-        lr: Adam learning rate (paper: 1e-4).
-        ema_decay: EMA decay (paper: 0.995).
-        ema_start: step from which the EMA averages; before it the EMA copies the weights
-            (paper: 4000).
-        lr_decay_start: from this step the learning rate falls linearly to ``lr / 10`` at
-            ``steps`` (None: constant, the paper's setting). Like ``steps`` it may change when a
-            run is resumed.
-        grad_clip: gradient-norm clip.
-        window_stride: steps between training windows of one scene.
-        val_fraction: fraction of each dataset's scenes held out for validation (the last ones).
-        val_windows: validation windows evaluated each time (at most).
-        checkpoint_every: steps between checkpoints and validations.
-        seed: seeds data order, diffusion noise and initialisation.
-        device: torch device.
-        init: a model directory (or ``"default"``, the shipped one) whose weights and action
-            normalisation start the run (fine-tuning); None: a fresh model.
-        off_lane_weight: weight of the loss's off-lane term (``WorldModel.loss``); 0 leaves
-            it out.
-        overlap_weight: weight of the loss's overlap term (``WorldModel.loss``: predicted
-            boxes running into each other); 0 leaves it out.
-        min_future_steps: future frames a window needs inside its log (None: the model's whole
-            horizon); fewer admits the ends of short real logs, their missing frames masked.
-        agent_centred: those of ``data`` whose windows centre on every vehicle in turn
-            (``SceneWindowDataset(centres="agents")``: real recordings), not on the ego alone.
-        data_weights: share of each ``data`` entry in every batch (normalised; windows drawn
-            with replacement, seeded by the step). None: every window equally likely (one
-            shuffled pass per epoch), so a source's share is its share of the windows.
-    """
-
-    data: tuple[str, ...]
-    out: str
-    preset: str = "default"
-    model_overrides: Mapping[str, Any] = field(default_factory=dict)
-    steps: int = 20000
-    batch_size: int = 32
-    lr: float = 1e-4
-    ema_decay: float = 0.995
-    ema_start: int = 4000
-    lr_decay_start: int | None = None
-    grad_clip: float = 1.0
-    window_stride: int = 5
-    val_fraction: float = 0.05
-    val_windows: int = 128
-    checkpoint_every: int = 500
-    seed: int = 0
-    device: str = "cpu"
-    init: str | None = None
-    off_lane_weight: float = 0.0
-    overlap_weight: float = 0.0
-    min_future_steps: int | None = None
-    agent_centred: tuple[str, ...] = ()
-    data_weights: tuple[float, ...] | None = None
-
-    def __post_init__(self) -> None:
-        for key in ("off_lane_weight", "overlap_weight"):
-            if not getattr(self, key) >= 0:
-                raise ValueError(f"{key} must be >= 0, got {getattr(self, key)}")
-        unknown = [d for d in self.agent_centred if d not in self.data]
-        if unknown:
-            raise ValueError(f"agent_centred names datasets not in data: {unknown}")
-        if self.data_weights is not None:
-            w = self.data_weights
-            if len(w) != len(self.data):
-                raise ValueError(
-                    f"data_weights has {len(w)} values for {len(self.data)} data entries"
-                )
-            if any(not x >= 0 for x in w) or sum(w) <= 0:
-                raise ValueError(f"data_weights must be >= 0 with a positive sum, got {list(w)}")
-
-
-# ModelConfig fields that size no tensor, so ``--init`` may change them: which lanes the window
-# holds, and how the model samples.
-UNSIZED_FIELDS = (
-    "num_lanes",
-    "map_radius",
-    "lane_anchors",
-    "sampler",
-    "sampling_steps",
-    "eta",
-    "map_guidance",
-    "lane_steering",
-)
 
 
 def _windows(ds: SceneWindowDataset, rows: Sequence[int]) -> dict[str, torch.Tensor]:
@@ -252,7 +161,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         else None
     )
     if state is not None:
-        old, new = state["config"], _plain(cfg)
+        old, new = state["config"], plain_settings(cfg)
         changed = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
         if changed:
             raise ValueError(
@@ -380,7 +289,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
                 {
                     "step": step,
                     "elapsed": time.perf_counter() - t_start,
-                    "config": _plain(cfg),
+                    "config": plain_settings(cfg),
                     "normalization": normalization.to_dict(),
                     "model": model.state_dict(),
                     "ema": ema.state_dict(),
@@ -399,37 +308,3 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     if bar is not None:
         bar.close()
     return record
-
-
-def learning_rate(cfg: TrainConfig, step: int) -> float:
-    """Learning rate of optimiser step ``step + 1`` (see ``TrainConfig.lr_decay_start``)."""
-    start = cfg.lr_decay_start
-    if start is None or step < start or cfg.steps <= start:
-        return cfg.lr
-    frac = min(1.0, (step - start) / (cfg.steps - start))
-    return cfg.lr * (1 - 0.9 * frac)
-
-
-def _plain(cfg: TrainConfig) -> dict[str, Any]:
-    """The run settings as plain containers (compared on resume; stored in ``last.pt``)."""
-    d = dataclasses.asdict(cfg)
-    d["data"] = [str(x) for x in d["data"]]
-    d["agent_centred"] = [str(x) for x in d["agent_centred"]]
-    if not d["agent_centred"]:
-        d.pop("agent_centred")  # runs from before agent-centred windows still resume
-    if d["data_weights"] is None:
-        d.pop("data_weights")
-    else:
-        d["data_weights"] = [float(x) for x in d["data_weights"]]
-    d["model_overrides"] = {k: v for k, v in sorted(dict(cfg.model_overrides).items())}
-    d.pop("device")
-    d.pop("out")  # a moved or copied run directory still resumes
-    if d["init"] is None:
-        d.pop("init")  # runs from before --init existed still resume
-    if d["off_lane_weight"] == 0:
-        d.pop("off_lane_weight")  # and so do runs from before the off-lane term
-    if d["overlap_weight"] == 0:
-        d.pop("overlap_weight")  # and before the overlap term
-    d["steps"] = None  # a longer --steps continues the same run
-    d["lr_decay_start"] = None  # and so may the tail of the schedule
-    return d

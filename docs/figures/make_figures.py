@@ -34,7 +34,7 @@ from counterscene_env.adversary.conflicts import (
     mine_conflicts,
     strict_gate_failures,
 )
-from counterscene_env.adversary.guidance import compressed_arrivals, stage_multiplier
+from counterscene_env.adversary.schedules import compressed_arrivals, stage_multiplier
 from counterscene_env.adversary.selection import select_adversary
 from counterscene_env.adversary.tracks import check_tracks
 from counterscene_env.geometry import box_corners, from_frame
