@@ -15,8 +15,9 @@ and valid 3 s later are scored; for each:
   (no final-step lane keeping), the network with no lane map at all, the model with the
   history's past speeds smoothed over 0.5 s ("now" kept: are jumpy real-log speeds what
   misleads it?), the log's own action
-  tokens rolled out through the model's unicycle (what the action space can express), and
-  constant velocity; for each also the share of windows in which it puts two agents' boxes
+  tokens rolled out through the model's unicycle (what the action space can express),
+  constant velocity, and constant acceleration at the history's speed change over its last
+  1 s (does the history tell the coming speed change?); for each also the share of windows in which it puts two agents' boxes
   on each other within 3 s where the log's do not (every agent of the window);
 - ``course``: constant velocity along the course now (a backward difference over 0.1 s),
   along the heading, and along the course over 0.5 s;
@@ -109,6 +110,24 @@ def cv_track(model, state, course) -> torch.Tensor:
     return torch.cat([xy, course[..., None, None].expand(*xy.shape[:-1], 1)], -1)
 
 
+def ca_track(model, batch, state, window: int = 10) -> torch.Tensor:
+    """Constant acceleration along the course now, the acceleration being the history's speed
+    change over its last ``window`` frames (1 s), as ``[B, K, F, 3]`` (x, y, course); a car
+    that decelerates stops and stays. Does the history tell the coming speed change?"""
+    c = model.config
+    hist = batch["history"]
+    ok = batch["history_valid"][..., -1 - window]
+    acc = torch.where(ok, (hist[..., -1, 3] - hist[..., -1 - window, 3]) / (window * c.dt), 0.0)
+    t = torch.arange(1, c.future_steps + 1, dtype=hist.dtype) * c.dt  # [F] s
+    v, a = state[..., 3, None], acc[..., None]
+    stop = torch.where(a < 0, -v / a.clamp(max=-1e-6), torch.inf)  # [B, K, 1] s
+    tt = torch.minimum(t, stop)
+    dist = (v * tt + 0.5 * a * tt**2).clamp(min=0)  # [B, K, F] m
+    yaw = state[..., 2, None]
+    xy = state[..., None, :2] + dist[..., None] * torch.stack([yaw.cos(), yaw.sin()], -1)
+    return torch.cat([xy, yaw[..., None].expand(*dist.shape, 1)], -1)
+
+
 def variants(model, batch, state, sel, seed: int) -> dict[str, dict]:
     def sample(b, **kw):
         g = torch.Generator().manual_seed(seed)
@@ -131,6 +150,7 @@ def variants(model, batch, state, sel, seed: int) -> dict[str, dict]:
         "smoothed_history": sample(smooth),
         "logged_actions": logged,
         "constant_velocity": cv_track(model, state, state[..., 2]),
+        "constant_acceleration": ca_track(model, batch, state),
     }
     return {
         name: {**errors(p, batch, state, sel), "windows_with_new_overlap": overlapping(p, batch)}

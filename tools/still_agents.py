@@ -4,7 +4,9 @@ An agent is *still* in a window when it is under 0.5 m/s at "now" and its logged
 later is within 0.1 m of where it is (``evaluate-model``'s "still" agents). For each, one
 sample of the model's plan: how far it moves in 3 s and its accelerations. The split tells a
 creep (every still car drifts a little) from a decision (a few are sent off), and the share
-of all cars stopped now that drive off tells whether that decision is calibrated:
+of all cars stopped now that drive off tells whether that decision is calibrated, for cars
+stopped on a lane of the model's window (queued: the log may go) and off every lane (parked
+at the kerb or in a lot):
 
     python tools/still_agents.py scenarionet:path/to/nuscenes_mini_scenarionet [--model DIR]
 """
@@ -24,9 +26,79 @@ from counterscene_env.world_model.evaluate import (
     window_batches,
     window_jobs,
 )
+from counterscene_env.world_model.map_guidance import lane_excess
 
 HORIZON = 30  # steps (3 s at 10 Hz)
 DRIVES_OFF = 0.5  # m in 3 s: a still car sent off, not drifting
+ON_LANE = 0.5  # m: a car this close to a window lane strip (or inside one) is on a lane
+
+
+def stopped_agents(model, scenes, every: int, seed: int) -> dict[str, np.ndarray]:
+    """Every agent-window stopped now (< ``PARKED_SPEED``) and valid 3 s later, one sample:
+    ``logged`` and ``moved`` [m], how far the log and the sample take it in 3 s, ``on_lane``
+    whether it stands on a window lane, and ``accel [n, H]`` m/s^2, the sample's
+    accelerations."""
+    jobs = window_jobs(scenes, model.config.history_steps, every, HORIZON)
+    g = torch.Generator().manual_seed(seed)
+    rows, accel = [], []
+    for part, batch in window_batches(model, scenes, jobs):
+        with torch.no_grad():
+            pred = model.sample(batch, 1, g)
+            state = model.current_state(batch)  # [B, K, 4] x, y, course, speed
+            lanes = (batch["map"], batch["map_valid"], batch["map_widths"])
+            off_lane = lane_excess(state[:, :, None, :2], *lanes)[..., 0].numpy()  # [B, K] m
+            state = state.numpy()
+        future, ok = batch["future"].numpy(), batch["future_valid"].numpy()
+        for b in range(len(part)):
+            for k in range(state.shape[1]):
+                if not pred.valid[b, k] or abs(state[b, k, 3]) >= PARKED_SPEED:
+                    continue
+                if not ok[b, k, HORIZON - 1]:
+                    continue
+                here = state[b, k, :2]
+                end = pred.trajectory[b, 0, k, HORIZON - 1, :2].numpy()
+                logged = float(np.linalg.norm(future[b, k, HORIZON - 1, :2] - here))
+                moved = float(np.linalg.norm(end - here))
+                rows.append((logged, moved, off_lane[b, k] <= ON_LANE))
+                accel.append(pred.actions[b, 0, k, :HORIZON, 0].numpy())
+    r = np.array(rows, float).reshape(-1, 3)
+    return {
+        "logged": r[:, 0],
+        "moved": r[:, 1],
+        "on_lane": r[:, 2].astype(bool),
+        "accel": np.array(accel).reshape(len(r), HORIZON),
+    }
+
+
+def report(s: dict[str, np.ndarray]) -> None:
+    still = s["logged"] < STILL_DISPLACEMENT
+    if not still.any():
+        raise SystemExit("no still agents in this source")
+    a, d, lane = s["accel"][still], s["moved"][still], s["on_lane"][still]
+    off = d > DRIVES_OFF
+    print(f"still agent-windows: {len(d)}")
+    print(f"moved in 3 s: mean {d.mean():.3f} m, median {np.median(d):.3f} m")
+    for name, m in (("on a lane", lane), ("off every lane", ~lane)):
+        if m.any():
+            print(f"  {name}: {m.sum()}, mean {d[m].mean():.3f} m, sent off {off[m].sum()}")
+    print(f"accelerations: mean {a.mean():.3f} m/s^2, mean |a| {np.abs(a).mean():.3f} m/s^2")
+    went_log, went_model = s["logged"] > DRIVES_OFF, s["moved"] > DRIVES_OFF
+    for name, m in (
+        ("", slice(None)),
+        (" on a lane", s["on_lane"]),
+        (" off every lane", ~s["on_lane"]),
+    ):
+        n = len(went_log[m])
+        if n:
+            print(
+                f"of {n} agent-windows stopped now (< {PARKED_SPEED} m/s){name}, moved over "
+                f"{DRIVES_OFF} m in 3 s: log {went_log[m].mean():.1%}, model {went_model[m].mean():.1%}"
+            )
+    print(
+        f"sent off (> {DRIVES_OFF} m): {off.sum()} ({off.mean():.1%}), "
+        f"{d[off].sum() / max(d.sum(), 1e-9):.0%} of the mean; "
+        f"the others move {d[~off].mean() if (~off).any() else 0.0:.3f} m on average"
+    )
 
 
 def main() -> None:
@@ -38,47 +110,7 @@ def main() -> None:
     args = ap.parse_args()
     model = load_model(args.model).eval()
     scenes = list(stored_scenes(args.source))
-    jobs = window_jobs(scenes, model.config.history_steps, args.every, HORIZON)
-    g = torch.Generator().manual_seed(args.seed)
-    accel, moved, stopped = [], [], []
-    for part, batch in window_batches(model, scenes, jobs):
-        with torch.no_grad():
-            pred = model.sample(batch, 1, g)
-            state = model.current_state(batch).numpy()  # [B, K, 4] x, y, course, speed
-        future, ok = batch["future"].numpy(), batch["future_valid"].numpy()
-        for b in range(len(part)):
-            for k in range(state.shape[1]):
-                here = state[b, k, :2]
-                if not pred.valid[b, k] or abs(state[b, k, 3]) >= PARKED_SPEED:
-                    continue
-                if not ok[b, k, HORIZON - 1]:
-                    continue
-                end = pred.trajectory[b, 0, k, HORIZON - 1, :2].numpy()
-                logged = float(np.linalg.norm(future[b, k, HORIZON - 1, :2] - here))
-                stopped.append(
-                    (logged > DRIVES_OFF, float(np.linalg.norm(end - here)) > DRIVES_OFF)
-                )
-                if logged >= STILL_DISPLACEMENT:
-                    continue
-                accel.append(pred.actions[b, 0, k, :HORIZON, 0].numpy())
-                moved.append(float(np.linalg.norm(end - here)))
-    if not moved:
-        raise SystemExit("no still agents in this source")
-    a, d = np.array(accel), np.array(moved)
-    off = d > DRIVES_OFF
-    print(f"still agent-windows: {len(d)}")
-    print(f"moved in 3 s: mean {d.mean():.3f} m, median {np.median(d):.3f} m")
-    print(f"accelerations: mean {a.mean():.3f} m/s^2, mean |a| {np.abs(a).mean():.3f} m/s^2")
-    went = np.array(stopped)  # [n, 2]: (the log went, the model went) per stopped agent
-    print(
-        f"of {len(went)} agent-windows stopped now (< {PARKED_SPEED} m/s), moved over "
-        f"{DRIVES_OFF} m in 3 s: log {went[:, 0].mean():.1%}, model {went[:, 1].mean():.1%}"
-    )
-    print(
-        f"sent off (> {DRIVES_OFF} m): {off.sum()} ({off.mean():.1%}), "
-        f"{d[off].sum() / max(d.sum(), 1e-9):.0%} of the mean; "
-        f"the others move {d[~off].mean() if (~off).any() else 0.0:.3f} m on average"
-    )
+    report(stopped_agents(model, scenes, args.every, args.seed))
 
 
 if __name__ == "__main__":
