@@ -581,3 +581,28 @@ def test_short_logs_start_later_or_are_skipped_and_counted(tmp_path):
     spec = f"scenarionet:{tmp_path}"
     assert [s.metadata["source_file"] for s in stored_scenes(spec)] == ["short.pkl"]
     assert SKIPPED[spec] == 1
+
+
+def test_a_zero_velocity_ending_a_moving_track_is_filled(tmp_path):
+    """ScenarioNet's nuScenes converter ends every track on a velocity of (0, 0): read as
+    such, a car at 10 m/s would stop in one frame. A parked car's zero is kept."""
+    sd = _scenario()
+    ego = sd["tracks"]["ego"]["state"]
+    ego["velocity"][-1] = 0.0  # moving at 10 m/s to the end
+    veh = sd["tracks"]["veh_b"]["state"]  # parked: its zero stays
+    scene = load_scenarionet(_write(tmp_path, sd))
+    assert scene.speeds[0, -1] == pytest.approx(10.0)
+    row = scene.agent_ids.tolist().index("veh_b")
+    assert not veh["velocity"].any() and scene.speeds[row, scene.valid[row]].max() == 0.0
+    assert "zero velocities" in scene.metadata["repairs"]["ego"][-1]
+    assert "veh_b" not in scene.metadata["repairs"]
+
+
+def test_a_car_that_really_stops_keeps_its_zero_velocity(tmp_path):
+    sd = _scenario()
+    ego = sd["tracks"]["ego"]["state"]
+    ego["position"][-1] = ego["position"][-2]  # it did not move in its last step
+    ego["velocity"][-1] = 0.0
+    scene = load_scenarionet(_write(tmp_path, sd))
+    assert scene.speeds[0, -1] == 0.0
+    assert not any("zero velocities" in r for r in scene.metadata["repairs"].get("ego", []))

@@ -31,7 +31,12 @@ is listed in ``metadata["repairs"]`` (track id -> what was done):
 - a vehicle whose length is below its width (the nuScenes ego box is stored as 1.73 x 4.08):
   the two are swapped;
 - a position that jumps faster than any road user: the lone sample, or the track outside its
-  longest consistent piece, is made invalid (``core.drop_impossible_jumps``).
+  longest consistent piece, is made invalid (``core.drop_impossible_jumps``);
+- a velocity of exactly (0, 0) at the last valid step of a piece of track that is still
+  moving (at least half the previous step's displacement, after a step with a velocity of
+  1 m/s or more): the previous step's velocity. ScenarioNet's nuScenes converter writes
+  (0, 0) at the last step of every track (all 141 moving ones in nuScenes mini: a stop from
+  10 m/s in one frame), which would read as a hard brake.
 
 A track that cannot be repaired (no state dict, a missing or misshapen field, a length other
 than the ego's, no valid step left) is dropped, with the reason in
@@ -332,12 +337,42 @@ def _read_track(track: Any, where: str) -> tuple[str, dict[str, np.ndarray], lis
         raise ScenarioNetError(f"{where}: no valid step")
     extent, box_notes = _box(state["length"][valid], state["width"][valid], agent_type)
     notes += box_notes
+    filled = _fill_final_velocities(state["position"], state["velocity"], valid)
+    if filled:
+        notes.append(
+            f"{filled} zero velocities at the last step of a moving piece of track set to the "
+            "step before's"
+        )
     state["valid"] = valid
     for name in ("position", "velocity"):
         state[name] = np.where(valid[:, None], state[name], 0.0)
     state["heading"] = wrap_angle(np.where(valid, state["heading"], 0.0))
     state["extent"] = extent
     return agent_type, state, notes
+
+
+#: A piece of track whose velocity one step before its end is at least this is moving [m/s].
+MOVING_VELOCITY = 1.0
+
+
+def _fill_final_velocities(position: np.ndarray, velocity: np.ndarray, valid: np.ndarray) -> int:
+    """Put the previous step's velocity where a moving piece of track ends on (0, 0); edits
+    ``velocity [T, 2]`` m/s in place and returns how many steps it filled. ``position
+    [T, 2]`` m, ``valid [T]``: the source's own rate (no step length is needed: the last
+    displacement is compared with the one before)."""
+    ends = np.flatnonzero(valid & ~np.append(valid[1:], False))  # last step of each piece
+    filled = 0
+    for i in ends:
+        if i < 2 or not (valid[i - 1] and valid[i - 2]) or velocity[i].any():
+            continue
+        if np.hypot(*velocity[i - 1]) < MOVING_VELOCITY:
+            continue
+        last = np.hypot(*(position[i] - position[i - 1]))
+        before = np.hypot(*(position[i - 1] - position[i - 2]))
+        if last >= 0.5 * before > 0:
+            velocity[i] = velocity[i - 1]
+            filled += 1
+    return filled
 
 
 def _read_state(state: Mapping[str, Any], where: str) -> dict[str, np.ndarray]:
