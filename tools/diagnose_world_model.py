@@ -12,7 +12,9 @@ and valid 3 s later are scored; for each:
   (``along_mean``, ``along_abs``) and across it (``cross_abs``), speed 3 s ahead [m/s] and the
   course change by then [deg], the speed change over 3 s (mean, mean size, and its
   correlation with the log's: does the prediction know who speeds up and who slows down?), for the model (one sample, as configured), the network alone
-  (no final-step lane keeping), the network with no lane map at all, the model with the
+  (no final-step lane keeping), the network with no lane map at all, the model with every
+  vehicle stopped now taken out of the window (do parked cars read as queued traffic?), the
+  model with the
   history's past speeds smoothed over 0.5 s ("now" kept: are jumpy real-log speeds what
   misleads it?), the log's own action
   tokens rolled out through the model's unicycle (what the action space can express),
@@ -51,6 +53,7 @@ from counterscene_env.world_model.window import lane_segments
 
 HORIZON = 30  # 3 s at 10 Hz
 MOVING = 3.0  # m/s
+STOPPED = 0.5  # m/s: a vehicle slower than this now is stopped (parked or queued)
 
 
 def windows(scenes, model) -> dict[str, torch.Tensor]:
@@ -139,6 +142,9 @@ def variants(model, batch, state, sel, seed: int) -> dict[str, dict]:
         return torch.cat(out)
 
     no_map = {**batch, "map_valid": torch.zeros_like(batch["map_valid"])}
+    # Every vehicle stopped now (mostly parked on real streets) taken out of the window.
+    stopped = model.agent_mask(batch) & (state[..., 3].abs() < STOPPED)
+    no_stopped = {**batch, "agent_valid": batch["agent_valid"] & ~stopped}
     smooth = {**batch, "history": smoothed_speeds(batch["history"], batch["history_valid"])}
     actions, _ = model.target_actions(batch)
     with torch.no_grad():
@@ -147,6 +153,7 @@ def variants(model, batch, state, sel, seed: int) -> dict[str, dict]:
         "model": sample(batch),
         "network": sample(batch, lane_steering=0),
         "network_no_map": sample(no_map, lane_steering=0),
+        "model_without_stopped_cars": sample(no_stopped),
         "smoothed_history": sample(smooth),
         "logged_actions": logged,
         "constant_velocity": cv_track(model, state, state[..., 2]),

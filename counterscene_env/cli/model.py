@@ -69,6 +69,15 @@ def add_train(sub) -> None:
         "log's do not (default 0: left out)",
     )
     tr.add_argument(
+        "--parked-cars",
+        type=float,
+        default=0.0,
+        metavar="SHARE",
+        help="share of the training windows that get 1-3 parked cars beside their lanes, "
+        "standing still while the logged traffic passes (default 0: none; "
+        "docs/world_model.md)",
+    )
+    tr.add_argument(
         "--min-future",
         type=int,
         metavar="STEPS",
@@ -125,6 +134,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         min_future_steps=args.min_future,
         agent_centred=tuple(args.agent_centred),
         data_weights=None if args.data_weights is None else tuple(args.data_weights),
+        parked_cars=args.parked_cars,
     )
     record = train(cfg, progress=not args.quiet)
     print(json.dumps(json_safe(record)))

@@ -29,6 +29,7 @@ from torch.utils.data import default_collate
 from counterscene_env.world_model.checkpoint import save_model
 from counterscene_env.world_model.config import preset as get_preset
 from counterscene_env.world_model.dataset import SceneWindowDataset, load_sources
+from counterscene_env.world_model.parked import add_parked_cars
 from counterscene_env.world_model.model import Normalization, WorldModel
 from counterscene_env.world_model.train_config import (
     UNSIZED_FIELDS,
@@ -39,6 +40,8 @@ from counterscene_env.world_model.train_config import (
 
 STATE_FILE = "last.pt"
 LOG_FILE = "log.jsonl"
+#: Offset of the parked cars' seeds from the batch draws' (``seed * 100003 + step``).
+PARKED_STREAM = 2**40
 
 
 def _windows(ds: SceneWindowDataset, rows: Sequence[int]) -> dict[str, torch.Tensor]:
@@ -256,6 +259,9 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             group["lr"] = learning_rate(cfg, step)
         rows = next(batches).to(device)
         batch = {k: v[rows] for k, v in train_data.items()}
+        if cfg.parked_cars > 0:  # a stream of its own, seeded by the step: resumes exactly
+            g = torch.Generator().manual_seed(PARKED_STREAM + cfg.seed * 100003 + step)
+            batch = add_parked_cars(batch, cfg.parked_cars, g)
         losses = model.loss(batch, noise, cfg.off_lane_weight, cfg.overlap_weight)
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()

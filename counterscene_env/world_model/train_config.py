@@ -52,6 +52,8 @@ class TrainConfig:
         data_weights: share of each ``data`` entry in every batch (normalised; windows drawn
             with replacement, seeded by the step). None: every window equally likely (one
             shuffled pass per epoch), so a source's share is its share of the windows.
+        parked_cars: share of the training windows that get parked cars beside their lanes
+            (``world_model/parked.py``; seeded by the step); 0: none.
     """
 
     data: tuple[str, ...]
@@ -77,11 +79,14 @@ class TrainConfig:
     min_future_steps: int | None = None
     agent_centred: tuple[str, ...] = ()
     data_weights: tuple[float, ...] | None = None
+    parked_cars: float = 0.0
 
     def __post_init__(self) -> None:
         for key in ("off_lane_weight", "overlap_weight"):
             if not getattr(self, key) >= 0:
                 raise ValueError(f"{key} must be >= 0, got {getattr(self, key)}")
+        if not 0 <= self.parked_cars <= 1:
+            raise ValueError(f"parked_cars must be in [0, 1], got {self.parked_cars}")
         unknown = [d for d in self.agent_centred if d not in self.data]
         if unknown:
             raise ValueError(f"agent_centred names datasets not in data: {unknown}")
@@ -138,6 +143,8 @@ def plain_settings(cfg: TrainConfig) -> dict[str, Any]:
         d.pop("off_lane_weight")  # and so do runs from before the off-lane term
     if d["overlap_weight"] == 0:
         d.pop("overlap_weight")  # and before the overlap term
+    if d["parked_cars"] == 0:
+        d.pop("parked_cars")  # and before parked cars
     d["steps"] = None  # a longer --steps continues the same run
     d["lr_decay_start"] = None  # and so may the tail of the schedule
     return d
