@@ -109,6 +109,27 @@ def test_resume_extends_the_run_and_matches_an_uninterrupted_one(dataset, tmp_pa
     assert len(_log(fresh)) == 3
 
 
+def test_parked_cars_change_the_run_and_resume_exactly(dataset, tmp_path, capsys):
+    parked = ("--parked-cars", "1")
+    resumed, fresh, plain = tmp_path / "resumed", tmp_path / "fresh", tmp_path / "plain"
+    assert _train(dataset, resumed, 2, *parked) == 0
+    assert _train(dataset, resumed, 4, *parked) == 0
+    assert _train(dataset, fresh, 4, *parked) == 0
+    assert _train(dataset, plain, 4) == 0
+    strip = [json.loads(x) for x in _log(resumed)], [json.loads(x) for x in _log(fresh)]
+    for x, y in zip(*strip, strict=True):
+        x.pop("wall_time_s"), y.pop("wall_time_s")
+        assert x == y
+    assert _log(fresh)[-1].split('"wall_time_s"')[0] != _log(plain)[-1].split('"wall_time_s"')[0]
+    # A run without parked cars does not resume with them, and a share outside [0, 1] is refused.
+    capsys.readouterr()
+    assert _train(dataset, plain, 6, *parked) == 1
+    assert "different settings" in capsys.readouterr().err
+    assert _train(dataset, tmp_path / "bad", 2, "--parked-cars", "2") == 1
+    err = capsys.readouterr().err
+    assert "parked_cars" in err and "Traceback" not in err
+
+
 def test_resume_with_other_settings_is_refused(trained, dataset, capsys):
     weights = (trained / "model.safetensors").read_bytes()
     capsys.readouterr()

@@ -88,7 +88,7 @@ def add_parked_cars(
         return batch
     out = {k: v.clone() for k, v in batch.items()}
     hist, fut = out["history"], out["future"]
-    B, K = out["agent_valid"].shape
+    B = out["agent_valid"].shape[0]
     for b in range(B):
         if float(torch.rand((), generator=generator)) >= share:
             continue

@@ -29,8 +29,8 @@ from torch.utils.data import default_collate
 from counterscene_env.world_model.checkpoint import save_model
 from counterscene_env.world_model.config import preset as get_preset
 from counterscene_env.world_model.dataset import SceneWindowDataset, load_sources
-from counterscene_env.world_model.parked import add_parked_cars
 from counterscene_env.world_model.model import Normalization, WorldModel
+from counterscene_env.world_model.parked import add_parked_cars
 from counterscene_env.world_model.train_config import (
     UNSIZED_FIELDS,
     TrainConfig,
