@@ -1,0 +1,74 @@
+"""Two or more world models on the same windows: one-sample ADE over 0-3 s against constant
+velocity, and each model's difference from the first, paired by scene with a bootstrap interval
+(docs/world_model.md, "Parked cars"):
+
+    python tools/paired_ade.py scenarionet:path/to/nuscenes_mini_scenarionet runs/a runs/b default
+
+Every second of each log where 3 s of history and 3 s of future exist, every agent the model
+sees (as ``counterscene evaluate-model --every 1``, one sample per sampling call, the same seed
+for every model). The ratio is the sum of the model's ADE over the sum of constant velocity's.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import torch
+
+from counterscene_env.scene.sources import stored_scenes
+from counterscene_env.world_model.checkpoint import load_model
+from counterscene_env.world_model.evaluate import constant_velocity, window_batches, window_jobs
+
+HORIZON = 30  # steps (3 s at 10 Hz)
+
+
+def per_scene(model, scenes, seed: int) -> np.ndarray:
+    """``[S, 2]``: each scene's summed ADE over 0-3 s, the model's and constant velocity's [m]."""
+    jobs = window_jobs(scenes, model.config.history_steps, 10, HORIZON)
+    g = torch.Generator().manual_seed(seed)
+    sums = np.zeros((len(scenes), 2))
+    for part, batch in window_batches(model, scenes, jobs):
+        with torch.no_grad():
+            pred = model.sample(batch, 1, g)
+            state = model.current_state(batch).numpy()
+        xy = pred.trajectory[:, 0, :, :HORIZON, :2].numpy()  # [B, K, H, 2]
+        future = batch["future"].numpy()[..., :HORIZON, :2]
+        ok = batch["future_valid"].numpy()[..., :HORIZON]
+        cv = constant_velocity(state, HORIZON, model.config.dt)
+        seen = model.agent_mask(batch).numpy()
+        for b, (scene, _) in enumerate(part):
+            for k in np.flatnonzero(seen[b] & ok[b].any(-1)):
+                o = ok[b, k]
+                sums[scene, 0] += np.linalg.norm(xy[b, k][o] - future[b, k][o], axis=-1).mean()
+                sums[scene, 1] += np.linalg.norm(cv[b, k][o] - future[b, k][o], axis=-1).mean()
+    return sums
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("source", help="scenario spec: scenarionet:DIR, commonroad:DIR or a dataset")
+    ap.add_argument("models", nargs="+", help="model directories ('default': the shipped one)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--bootstrap", type=int, default=2000)
+    args = ap.parse_args()
+    scenes = list(stored_scenes(args.source))
+    sums = {m: per_scene(load_model(m).eval(), scenes, args.seed) for m in args.models}
+    rng = np.random.default_rng(0)
+    draws = rng.integers(0, len(scenes), (args.bootstrap, len(scenes)))
+    first = sums[args.models[0]]
+    for name, s in sums.items():
+        ratio = s[:, 0].sum() / s[:, 1].sum()
+        line = f"{name}: ADE 0-3 s / constant velocity {ratio:.3f}"
+        if name != args.models[0]:
+            diff = [(s[i, 0].sum() - first[i, 0].sum()) / first[i, 1].sum() for i in draws]
+            lo, hi = np.percentile(diff, [2.5, 97.5])
+            line += (
+                f", minus {args.models[0]}: {ratio - first[:, 0].sum() / first[:, 1].sum():+.3f}"
+            )
+            line += f" [{lo:+.3f}, {hi:+.3f}]"
+        print(line)
+
+
+if __name__ == "__main__":
+    main()
