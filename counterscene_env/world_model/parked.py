@@ -102,14 +102,18 @@ def add_parked_cars(
             if pose is None:
                 break
             at, yaw = pose
-            state = torch.tensor([float(at[0]), float(at[1]), yaw, 0.0], dtype=hist.dtype)
+            state = torch.tensor(
+                [float(at[0]), float(at[1]), yaw, 0.0], dtype=hist.dtype, device=hist.device
+            )
             hist[b, k] = state
             fut[b, k] = state
             out["history_valid"][b, k] = True
             out["future_valid"][b, k] = True
             out["agent_valid"][b, k] = True
             out["extents"][b, k] = torch.tensor(
-                [_uniform(LENGTH, generator), _uniform(WIDTH, generator)], dtype=hist.dtype
+                [_uniform(LENGTH, generator), _uniform(WIDTH, generator)],
+                dtype=hist.dtype,
+                device=hist.device,
             )
             logged = torch.cat([logged, at[None]])
     return out
