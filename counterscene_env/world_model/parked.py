@@ -8,8 +8,9 @@ moving cars near them and starts 5 % of those off every lane where the log start
 
 A share of the training windows gets 1 to :data:`MAX_CARS` parked cars in free agent slots:
 a car-sized box beside a lane of the window (its centre :data:`KERB_OFFSET` m outside the lane
-strip), aligned with the lane, standing still over the whole window, and clear of every
-logged position of the window's agents by :data:`CLEARANCE` m. The other agents' logged
+strip), aligned with the lane, standing still over the whole window, and :data:`MARGIN` m clear
+of every logged box of the window's agents at every step, so that the traffic may pass right
+beside it, as it passes a row of parked cars on a street. The other agents' logged
 futures stay as they are, so the model learns both that a parked car stays and that the
 traffic beside it does not brake for it. The draws come from a generator the caller seeds per
 training step, so a resumed run adds the same cars.
@@ -26,9 +27,9 @@ MAX_CARS = 3
 #: How far the parked car's centre lies outside the lane strip it stands beside [m]:
 #: kerbside parking, from a car half on the strip to one on the verge.
 KERB_OFFSET = (0.3, 1.5)
-#: Its distance to every logged position of the window's agents (and to the other parked
-#: cars), at least [m]: a car length, so no logged box touches it.
-CLEARANCE = 4.5
+#: Its gap to every logged box of the window's agents and to the other parked cars, at
+#: least [m] (each box bounded by its rectangle in the parked car's frame).
+MARGIN = 0.3
 #: Its box, length and width ranges [m].
 LENGTH = (4.2, 5.0)
 WIDTH = (1.75, 2.0)
@@ -44,11 +45,35 @@ def _uniform(lo_hi: tuple[float, float], g: torch.Generator) -> float:
     return lo + (hi - lo) * float(torch.rand((), generator=g))
 
 
+def _clear(at: torch.Tensor, yaw: float, size: torch.Tensor, boxes: torch.Tensor) -> bool:
+    """Whether a box at ``at [2]`` m, ``yaw`` rad, ``size [2]`` m (length, width) keeps
+    :data:`MARGIN` from every box of ``boxes [n, 5]`` (x, y, yaw, length, width): each of them
+    bounded by its rectangle along the first box's axes (exact for boxes aligned with it, a
+    little wider for others)."""
+    if len(boxes) == 0:
+        return True
+    c, s = torch.cos(torch.tensor(yaw)), torch.sin(torch.tensor(yaw))
+    d = boxes[:, :2] - at
+    along, across = (d[:, 0] * c + d[:, 1] * s).abs(), (-d[:, 0] * s + d[:, 1] * c).abs()
+    rel = boxes[:, 2] - yaw
+    co, so = torch.cos(rel).abs(), torch.sin(rel).abs()
+    half_along = (co * boxes[:, 3] + so * boxes[:, 4]) / 2
+    half_across = (so * boxes[:, 3] + co * boxes[:, 4]) / 2
+    hit = (along < size[0] / 2 + half_along + MARGIN) & (
+        across < size[1] / 2 + half_across + MARGIN
+    )
+    return not bool(hit.any())
+
+
 def _place(
-    batch: dict[str, torch.Tensor], b: int, taken: torch.Tensor, g: torch.Generator
+    batch: dict[str, torch.Tensor],
+    b: int,
+    size: torch.Tensor,
+    taken: torch.Tensor,
+    g: torch.Generator,
 ) -> tuple[torch.Tensor, float] | None:
-    """A kerbside pose ``([2] m, yaw rad)`` in window ``b``'s frame clear of ``taken [n, 2]``
-    m, or None."""
+    """A kerbside pose ``([2] m, yaw rad)`` in window ``b``'s frame for a box of ``size [2]``
+    m clear of ``taken [n, 5]`` (x, y, yaw, length, width), or None."""
     lanes, ok, widths = batch["map"][b], batch["map_valid"][b], batch["map_widths"][b]
     segs = ok.nonzero().flatten()
     if len(segs) == 0:
@@ -71,9 +96,10 @@ def _place(
         excess = lane_excess(at[None, None, None], lanes[None], ok[None], widths[None])
         if float(excess) < KERB_OFFSET[0] - 1e-6:
             continue
-        if len(taken) and float((taken - at).norm(dim=-1).min()) < CLEARANCE:
+        yaw = float(torch.atan2(u[1], u[0]))
+        if not _clear(at, yaw, size, taken):
             continue
-        return at, float(torch.atan2(u[1], u[0]))
+        return at, yaw
     return None
 
 
@@ -94,11 +120,24 @@ def add_parked_cars(
             continue
         free = (~out["agent_valid"][b]).nonzero().flatten().tolist()
         n = min(len(free), 1 + int(torch.randint(MAX_CARS, (), generator=generator)))
+        ext = out["extents"][b][:, None]  # [K, 1, 2]
         logged = torch.cat(
-            [hist[b, ..., :2][out["history_valid"][b]], fut[b, ..., :2][out["future_valid"][b]]]
-        )  # [n, 2] every logged position in the window
+            [
+                torch.cat([hist[b, ..., :3], ext.expand(-1, hist.shape[2], 2)], -1)[
+                    out["history_valid"][b]
+                ],
+                torch.cat([fut[b, ..., :3], ext.expand(-1, fut.shape[2], 2)], -1)[
+                    out["future_valid"][b]
+                ],
+            ]
+        )  # [n, 5] every logged box of the window: x, y, yaw, length, width
         for k in free[:n]:
-            pose = _place(out, b, logged, generator)
+            size = torch.tensor(
+                [_uniform(LENGTH, generator), _uniform(WIDTH, generator)],
+                dtype=hist.dtype,
+                device=hist.device,
+            )
+            pose = _place(out, b, size, logged, generator)
             if pose is None:
                 break
             at, yaw = pose
@@ -110,10 +149,6 @@ def add_parked_cars(
             out["history_valid"][b, k] = True
             out["future_valid"][b, k] = True
             out["agent_valid"][b, k] = True
-            out["extents"][b, k] = torch.tensor(
-                [_uniform(LENGTH, generator), _uniform(WIDTH, generator)],
-                dtype=hist.dtype,
-                device=hist.device,
-            )
-            logged = torch.cat([logged, at[None]])
+            out["extents"][b, k] = size
+            logged = torch.cat([logged, torch.cat([state[:3], size])[None]])
     return out
