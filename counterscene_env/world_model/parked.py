@@ -120,17 +120,10 @@ def add_parked_cars(
             continue
         free = (~out["agent_valid"][b]).nonzero().flatten().tolist()
         n = min(len(free), 1 + int(torch.randint(MAX_CARS, (), generator=generator)))
-        ext = out["extents"][b][:, None]  # [K, 1, 2]
-        logged = torch.cat(
-            [
-                torch.cat([hist[b, ..., :3], ext.expand(-1, hist.shape[2], 2)], -1)[
-                    out["history_valid"][b]
-                ],
-                torch.cat([fut[b, ..., :3], ext.expand(-1, fut.shape[2], 2)], -1)[
-                    out["future_valid"][b]
-                ],
-            ]
-        )  # [n, 5] every logged box of the window: x, y, yaw, length, width
+        states = torch.cat([hist[b], fut[b]], 1)  # [K, H + F, 4]
+        valid = torch.cat([out["history_valid"][b], out["future_valid"][b]], 1)
+        sizes = out["extents"][b][:, None].expand(-1, states.shape[1], 2)
+        logged = torch.cat([states[..., :3], sizes], -1)[valid]  # [n, 5] x, y, yaw, l, w
         for k in free[:n]:
             size = torch.tensor(
                 [_uniform(LENGTH, generator), _uniform(WIDTH, generator)],
