@@ -121,6 +121,9 @@ def test_parked_cars_change_the_run_and_resume_exactly(dataset, tmp_path, capsys
         x.pop("wall_time_s"), y.pop("wall_time_s")
         assert x == y
     assert _log(fresh)[-1].split('"wall_time_s"')[0] != _log(plain)[-1].split('"wall_time_s"')[0]
+    # The model's record names the share (docs/world_model.md, "The shipped default").
+    assert load_model(fresh).training_info["parked_cars"] == 1.0
+    assert "parked_cars" not in load_model(plain).training_info
     # A run without parked cars does not resume with them, and a share outside [0, 1] is refused.
     capsys.readouterr()
     assert _train(dataset, plain, 6, *parked) == 1

@@ -230,12 +230,17 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         "lr": cfg.lr,
         "lr_decay_start": cfg.lr_decay_start,
         "ema_decay": cfg.ema_decay,
+        "ema_start": cfg.ema_start,
         "seed": cfg.seed,
         "device": str(device),
         "hardware": f"{platform.machine()} {os.cpu_count()} cores"
         + (f", {torch.cuda.get_device_name(device)}" if device.type == "cuda" else ""),
         "torch": torch.__version__,
     }
+    # What shaped the loss and the windows, where set (a shipped model's record of its run).
+    for key in ("off_lane_weight", "overlap_weight", "min_future_steps", "parked_cars"):
+        if getattr(cfg, key):
+            info[key] = getattr(cfg, key)
     if cfg.init is not None:  # provenance of a fine-tune: where it started
         info.update(init=cfg.init, init_training=dict(start.training_info))
     bar = None
@@ -278,9 +283,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         if bar is not None:
             bar.update(1)
             if step % 10 == 0:
-                bar.set_postfix(
-                    loss=f"{float(losses['loss']):.3f}", pos=f"{float(losses['position']):.2f}m"
-                )
+                loss, pos = float(losses["loss"].detach()), float(losses["position"].detach())
+                bar.set_postfix(loss=f"{loss:.3f}", pos=f"{pos:.2f}m")
         if step % cfg.checkpoint_every == 0 or step == cfg.steps:
             record = {"step": step, **{k: v / running["n"] for k, v in running.items() if k != "n"}}
             running = {}
