@@ -434,7 +434,7 @@ def test_lane_excess_is_the_exact_distance_outside_the_nearest_lane_strip(lanes_
             for t in range(T):
                 p = shapely.Point(points[n, a, t].detach().double().numpy())
                 want = min((max(line.distance(p) - h, 0.0) for line, h in strips), default=1e3)
-                assert float(got[n, a, t]) == pytest.approx(want, abs=1e-4)
+                assert float(got[n, a, t].detach()) == pytest.approx(want, abs=1e-4)
     monkeypatch.setattr(map_guidance, "NEAREST_PIECES", 10**6)  # every segment
     x = points.detach().requires_grad_(True)
     every = map_guidance.lane_excess(x, lanes, valid, widths)
