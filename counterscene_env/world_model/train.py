@@ -277,14 +277,14 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             decay = cfg.ema_decay if step > cfg.ema_start else 0.0
             for pe, pm in zip(ema.parameters(), model.parameters(), strict=True):
                 pe.lerp_(pm, 1 - decay)
-        for k, v in losses.items():
-            running[k] = running.get(k, 0.0) + float(v.detach())
+        values = {k: float(v.detach()) for k, v in losses.items()}
+        for k, v in values.items():
+            running[k] = running.get(k, 0.0) + v
         running["n"] = running.get("n", 0) + 1
         if bar is not None:
             bar.update(1)
             if step % 10 == 0:
-                loss, pos = float(losses["loss"].detach()), float(losses["position"].detach())
-                bar.set_postfix(loss=f"{loss:.3f}", pos=f"{pos:.2f}m")
+                bar.set_postfix(loss=f"{values['loss']:.3f}", pos=f"{values['position']:.2f}m")
         if step % cfg.checkpoint_every == 0 or step == cfg.steps:
             record = {"step": step, **{k: v / running["n"] for k, v in running.items() if k != "n"}}
             running = {}
