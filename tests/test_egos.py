@@ -75,3 +75,24 @@ def test_a_run_cycling_few_scenes_seats_the_next_choice_on_each_pass(tmp_path):
     assert got == ["street", "street/ego=a1"] * 2
     with pytest.raises(ValueError, match="egos must be >= 1"):
         StressConfig(str(path), episodes=4, egos=0)
+
+
+def test_a_run_can_seat_only_scenes_with_enough_log_after_their_start(tmp_path):
+    # "street" has 2.7 s after now (40 steps, now at 12); "stub" 0.2 s; min_future skips the
+    # stub, and the ego choices still cycle over the scenes kept.
+    stub = _street().time_slice(0, 15).replace(scenario_id="stub")
+    path = tmp_path / "logs.npz"
+    save_scenes([stub, _street()], path)
+    ids = [s.scenario_id for s in scenes_for(str(path), 3, 0, egos=2)]
+    assert ids == ["stub", "street", "stub/ego=a1"]
+    ids = [s.scenario_id for s in scenes_for(str(path), 3, 0, egos=2, min_future=1.0)]
+    assert ids == ["street", "street/ego=a1", "street"]
+    config = StressConfig(str(path), episodes=2, batch=2, min_future=2.7)
+    assert [s.scenario_id for _, scenes in chunks(config, []) for s in scenes] == ["street"] * 2
+    with pytest.raises(ValueError, match="min_future = 3 s"):
+        next(scenes_for(str(path), 1, 0, min_future=3.0))
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="min_future must be"):
+            StressConfig(str(path), episodes=2, min_future=bad)
+    # A generated road records a whole episode: the setting does not apply to it.
+    assert StressConfig("merge", episodes=2, min_future=3.0).min_future == 0.0

@@ -57,8 +57,13 @@ def test_a_row_with_many_more_collisions_is_outside_the_noise_and_a_copy_is_not(
     assert not cells["no_jerk"]["3s"]["CR"].paired.significant
 
 
-def test_rows_of_each_table_and_refused_settings():
+def test_rows_of_each_table_and_refused_settings(tmp_path):
     assert paper.rows_for("intersection")[0] == "counterscene"
+    # Real scenes are seated with the log the real-logs table's first horizon needs.
+    assert paper.REAL_MIN_FUTURE == min(min(h) for h in paper_tables.COLUMNS["real"].values())
+    real = paper.row_config(f"scenarionet:{tmp_path}", paper.ROWS["random"], 1, 0, "idm", 1)
+    assert real.min_future == paper.REAL_MIN_FUTURE
+    assert paper.row_config("merge", paper.ROWS["random"], 1, 0, "idm", 1).min_future == 0
     assert set(paper.rows_for("intersection")) == set(paper.ROWS)
     assert paper.rows_for("scenarionet:/data/logs") == paper.TABLES["main"]
     assert paper.scenario_dir("scenarionet:/data/nuscenes_mini/") == "scenarionet-nuscenes_mini"
@@ -113,6 +118,9 @@ def test_paper_tables_on_stored_logs_resumes_and_writes_timings_apart(generated,
     assert again == lines  # nothing ran twice
     assert json.loads((out / "tables.json").read_text())["tables"] == json.loads(first)["tables"]
     assert "Real logs at 3 s, 5 s and 7 s" in (out / "tables.md").read_text()
+    assert (
+        "real scenes with at least 3 s of log after their start" in (out / "tables.md").read_text()
+    )
     # --tables-only runs nothing, even when more episodes are asked for.
     assert main([*args, "--episodes", "5", "--tables-only"]) == 0
     assert {r: (out / "logs.npz" / r / "episodes.jsonl").read_text() for r in real} == lines

@@ -4,8 +4,9 @@
         --scenarionet ../shared/data/nuscenes_mini_scenarionet ../shared/data/waymo_scenarionet \
         --commonroad data/ngsim_split/heldout [--set strict_gates=false] [--json]
 
-The episodes are those of ``counterscene stress`` (and of every ``paper-tables`` row) with the
-same scenario, ``--episodes``, ``--seed`` and ``--egos``: each real scene seats up to
+The episodes are those of every ``paper-tables`` row (and of ``counterscene stress``) with the
+same scenario, ``--episodes``, ``--seed``, ``--egos`` and ``--min-future`` (default: as
+``paper-tables``, real scenes with 3 s of log after their start): each real scene seats up to
 ``--egos`` egos in turn. For each episode:
 
 - **near miss in the log**: some other vehicle's logged path passes within 3 m (centre to
@@ -31,6 +32,7 @@ from counterscene_env.metrics import wilson_interval
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import scenes_for
 from counterscene_env.sim import ClosedLoop, SimConfig
+from counterscene_env.stress.paper import REAL_MIN_FUTURE
 from counterscene_env.world_model import load_model
 
 #: A vehicle whose logged path comes this close to the ego's [m] is a near miss in the log.
@@ -54,10 +56,12 @@ def near_miss(scene: Scene, lo: int, hi: int) -> bool:
     return False
 
 
-def coverage(loop: ClosedLoop, spec: str, episodes: int, seed: int, egos: int) -> dict:
+def coverage(
+    loop: ClosedLoop, spec: str, episodes: int, seed: int, egos: int, min_future: float
+) -> dict:
     """The counts of the module docstring for one scenario spec."""
     rows = []
-    for i, scene in enumerate(scenes_for(spec, episodes, seed, egos)):
+    for i, scene in enumerate(scenes_for(spec, episodes, seed, egos, min_future=min_future)):
         loop.reset([scene], [seed + i])
         ep = loop.episodes[0]
         near = near_miss(ep.factual, ep.start + 1, ep.end + 1)
@@ -86,6 +90,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=30)
     parser.add_argument("--egos", type=int, default=3)
     parser.add_argument("--seed", type=int, default=300000)
+    parser.add_argument("--min-future", type=float, default=REAL_MIN_FUTURE, metavar="S")
     parser.add_argument("--model", default="default")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
     parser.add_argument("--json", action="store_true")
@@ -94,7 +99,10 @@ def main() -> None:
     specs += [SCENARIONET_PREFIX + d for d in args.scenarionet]
     specs += [COMMONROAD_PREFIX + d for d in args.commonroad]
     loop = ClosedLoop(load_model(args.model), SimConfig.from_mapping(parse_overrides(args.set)))
-    out = {spec: coverage(loop, spec, args.episodes, args.seed, args.egos) for spec in specs}
+    out = {
+        spec: coverage(loop, spec, args.episodes, args.seed, args.egos, args.min_future)
+        for spec in specs
+    }
     if args.json:
         print(json.dumps(out, indent=1))
         return

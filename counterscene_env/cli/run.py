@@ -80,6 +80,14 @@ def add_stress(sub) -> None:
         "moving vehicle as the ego (default 1: the recorded ego only)",
     )
     st.add_argument(
+        "--min-future",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="stored scenes: seat only those with at least S s of log after their start "
+        "(default 0: every scene; an episode ends with its log)",
+    )
+    st.add_argument(
         "--workers",
         type=int,
         help="processes to run batches in, one torch thread each (default 1; --backend ray: "
@@ -182,6 +190,7 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         sim=_sim_config(args),
         batch=args.batch,
         egos=args.egos,
+        min_future=args.min_future,
     )
     env_config = _policy_env_config(args, config.is_sb3)
     model = None if config.is_sb3 else load_model(args.model)  # a bad --model fails here

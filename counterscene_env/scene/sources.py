@@ -16,7 +16,9 @@ specs in turn.
 
 A stored scene too short for an episode (no step after its "now", or its ego absent then:
 ``core.playable``) is skipped and counted in :data:`SKIPPED`; an episode on a short log ends
-with the log (``ClosedLoop`` caps its length at the log's last step).
+with the log (``ClosedLoop`` caps its length at the log's last step). A stress run can ask for
+more: ``scenes_for(..., min_future=S)`` seats only stored scenes with at least ``S`` s of log
+after "now" (:func:`future_seconds`).
 """
 
 from __future__ import annotations
@@ -222,8 +224,18 @@ class SceneSource:
         return self._cache[spec]
 
 
+def future_seconds(scene: Scene) -> float:
+    """s of log after the scene's "now" (``current_index``): the longest episode it holds."""
+    return (scene.num_steps - 1 - scene.current_index) * scene.dt
+
+
 def scenes_for(
-    spec: str, episodes: int, seed: int, egos: int = 1, ahead: int = 0
+    spec: str,
+    episodes: int,
+    seed: int,
+    egos: int = 1,
+    ahead: int = 0,
+    min_future: float = 0.0,
 ) -> Iterator[Scene]:
     """The scene of each of ``episodes`` episodes of a stress run.
 
@@ -235,7 +247,9 @@ def scenes_for(
     mixture ``a,b,...`` of n specs, episode i is the ``i // n``-th scene of part ``i % n``.
     With ``ahead > 0`` a generated road's next seeds, up to ``ahead``, are recorded in a
     background process before they are asked for (``scene/prefetch.py``; not in a daemonic
-    process): the same scenes, sooner.
+    process): the same scenes, sooner. ``min_future`` [s]: a stored scene with less log after
+    its "now" (:func:`future_seconds`) is not seated (a generated road records a whole
+    episode's length); a stored spec with no scene that long raises ``ValueError``.
     """
     if egos < 1:
         raise ValueError(f"egos must be >= 1, got {egos}")
@@ -244,7 +258,7 @@ def scenes_for(
         n = len(parts)
         # Part j serves episodes j, j + n, ...: ceil((episodes - j) / n) of them.
         sources = [
-            scenes_for(p, -(-(episodes - j) // n), seed, egos, -(-ahead // n))
+            scenes_for(p, -(-(episodes - j) // n), seed, egos, -(-ahead // n), min_future)
             for j, p in enumerate(parts)
         ]
         for i in range(episodes):
@@ -262,18 +276,27 @@ def scenes_for(
             next_seed = scene.metadata["seed"] + 1
             yield scene
         return
-    yield from _stored_for(spec, episodes, egos)
+    yield from _stored_for(spec, episodes, egos, min_future)
 
 
-def _stored_for(spec: str, episodes: int, egos: int) -> Iterator[Scene]:
+def _stored_for(spec: str, episodes: int, egos: int, min_future: float) -> Iterator[Scene]:
     """:func:`scenes_for` of a stored spec: its scenes in order, then again with the next
     ego choice on each pass."""
     cache: list[Scene] = []
+    short = 0
     for scene in stored_scenes(spec):
         if len(cache) == episodes:
             return
+        if future_seconds(scene) < min_future:
+            short += 1
+            continue
         cache.append(scene)
         yield scene
+    if not cache and short:
+        raise ValueError(
+            f"{spec_path(spec)}: none of its {short} scenes has min_future = {min_future:g} s "
+            "of log after its start"
+        )
     if not cache:
         raise FileNotFoundError(f"{spec_path(spec)}: no scenes")
     choices: dict[int, list[int]] = {}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,6 +32,9 @@ class StressConfig:
             planner's in one vector env).
         egos: ego choices per stored scene when the run cycles a source with fewer scenes
             than episodes (``scene.sources.scenes_for``); 1 keeps every recorded ego.
+        min_future: s of log after "now" a stored scene needs to be seated (shorter ones are
+            skipped: an episode on them would end before anything could happen); 0 seats
+            every scene. Generated roads always record a whole episode.
     """
 
     scenario: str
@@ -40,6 +44,7 @@ class StressConfig:
     sim: SimConfig = dataclasses.field(default_factory=SimConfig)
     batch: int = 4
     egos: int = 1
+    min_future: float = 0.0
 
     def __post_init__(self) -> None:
         if self.episodes < 1:
@@ -48,9 +53,12 @@ class StressConfig:
             raise ValueError(f"batch must be >= 1, got {self.batch}")
         if self.egos < 1:
             raise ValueError(f"egos must be >= 1, got {self.egos}")
+        if not (math.isfinite(self.min_future) and self.min_future >= 0):
+            raise ValueError(f"min_future must be a finite number of s >= 0, got {self.min_future}")
         check_spec(self.scenario)
         if is_generated(self.scenario):
             object.__setattr__(self, "egos", 1)  # a new scene every episode: no ego choices
+            object.__setattr__(self, "min_future", 0.0)  # and a whole episode's recording
         if self.is_sb3:
             path = self.policy_path
             if not path.is_file():
@@ -82,6 +90,8 @@ def run_identity(config: StressConfig, model: str, env_config: dict | None = Non
     out.pop("episodes")
     if out["egos"] == 1:
         out.pop("egos")  # the recorded egos: as runs from before the key, which still resume
+    if out["min_future"] == 0:
+        out.pop("min_future")  # every scene: as runs from before the key
     out["model"] = model
     if env_config:
         out["env_config"] = env_config

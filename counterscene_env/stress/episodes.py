@@ -36,7 +36,9 @@ def _remaining_scenes(config: StressConfig, done: Sequence[dict], ahead: int) ->
     if config.scenario in Scenario.values() and k:
         seed = done[-1]["scene_seed"] + 1
         return scenes_for(config.scenario, config.episodes - k, seed, ahead=ahead)
-    scenes = scenes_for(config.scenario, config.episodes, config.seed, config.egos, ahead)
+    scenes = scenes_for(
+        config.scenario, config.episodes, config.seed, config.egos, ahead, config.min_future
+    )
     return itertools.islice(scenes, k, None)
 
 

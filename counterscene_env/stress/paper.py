@@ -97,6 +97,11 @@ TABLES = {
 #: zero-shot table).
 GENERATED_TABLES = ("main", "selection", "ablation")
 REAL_TABLES = ("real",)
+#: s of log after its start that a real scene needs to be seated by default: the real-logs
+#: table's first horizon (3 s; ``report.paper_tables``). A shorter episode enters none of
+#: the table's columns, only its whole-episode rates, where it can hold no event and dilutes
+#: them (docs/reproducing_the_paper.md, "Real logs: short scenes").
+REAL_MIN_FUTURE = 3.0
 TABLE_ROWS = {**TABLES, "real": TABLES["main"]}
 
 
@@ -151,10 +156,12 @@ def row_config(
     batch: int,
     base: dict | None = None,
     egos: int = 1,
+    min_future: float = REAL_MIN_FUTURE,
 ) -> StressConfig:
     """The stress run of one row on one scenario; ``base``: closed-loop settings shared by
     every row (``SimConfig`` keys other than :data:`ROW_KEYS`); ``egos``: ego choices per
-    real scene (``StressConfig.egos``; generated roads draw a new scene every episode)."""
+    real scene (``StressConfig.egos``; generated roads draw a new scene every episode);
+    ``min_future``: s of log a real scene needs after its start (``StressConfig.min_future``)."""
     base = dict(base or {})
     fixed = sorted(set(base) & set(ROW_KEYS))
     if fixed:
@@ -167,6 +174,7 @@ def row_config(
         sim=SimConfig.from_mapping({**base, **row.sim}),
         batch=batch,
         egos=egos,
+        min_future=min_future,
     )
 
 
@@ -189,6 +197,7 @@ def run_rows(
     batch: int = 4,
     base: dict | None = None,
     egos: int = 1,
+    min_future: float = REAL_MIN_FUTURE,
     progress: bool = True,
     on_row: Callable[[str, str, int], None] | None = None,
     run: bool = True,
@@ -211,7 +220,9 @@ def run_rows(
     _check_dirs_differ(specs)
     for spec in specs:
         for name in rows_for(spec, tables):
-            config = row_config(spec, ROWS[name], episodes, seed, planner, batch, base, egos)
+            config = row_config(
+                spec, ROWS[name], episodes, seed, planner, batch, base, egos, min_future
+            )
             if config.is_sb3:
                 raise ValueError("paper-tables runs the built-in planners (idm, log, ...)")
             plan.append((scenario_dir(spec), name, config))
