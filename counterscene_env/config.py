@@ -88,6 +88,11 @@ class Scenario(Choice):
 SCENARIONET_PREFIX = "scenarionet:"
 #: Prefix of a CommonRoad scenario directory or XML file in a scenario spec (``commonroad:DIR``).
 COMMONROAD_PREFIX = "commonroad:"
+#: s of log after its start that ``counterscene paper-tables`` needs of a real scene to seat
+#: it: the real-logs table's first horizon (``report.paper_tables.COLUMNS["real"]``). A shorter
+#: episode enters none of the table's columns, only its whole-episode rates, where it can
+#: hold no event and dilutes them (docs/reproducing_the_paper.md, "Real logs: short scenes").
+REAL_MIN_FUTURE = 3.0
 
 
 class Selector(Choice):

@@ -27,12 +27,11 @@ import json
 import numpy as np
 
 from counterscene_env.cli.common import parse_overrides
-from counterscene_env.config import COMMONROAD_PREFIX, SCENARIONET_PREFIX
+from counterscene_env.config import COMMONROAD_PREFIX, REAL_MIN_FUTURE, SCENARIONET_PREFIX
 from counterscene_env.metrics import wilson_interval
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import scenes_for
 from counterscene_env.sim import ClosedLoop, SimConfig
-from counterscene_env.stress.paper import REAL_MIN_FUTURE
 from counterscene_env.world_model import load_model
 
 #: A vehicle whose logged path comes this close to the ego's [m] is a near miss in the log.

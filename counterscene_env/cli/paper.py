@@ -13,6 +13,7 @@ from counterscene_env.cli.common import (
     add_seed_flag,
     parse_overrides,
 )
+from counterscene_env.config import REAL_MIN_FUTURE  # a light module: --help stays instant
 
 
 def add_paper_tables(sub) -> None:
@@ -67,10 +68,10 @@ def add_paper_tables(sub) -> None:
     pp.add_argument(
         "--min-future",
         type=float,
-        default=None,
+        default=REAL_MIN_FUTURE,
         metavar="S",
-        help="s of log after its start a real scene needs to be seated (default 3: the "
-        "real-logs table's first horizon; 0 seats every scene)",
+        help="s of log after its start a real scene needs to be seated (default "
+        f"{REAL_MIN_FUTURE:g}: the real-logs table's first horizon; 0 seats every scene)",
     )
     add_model_flag(pp)
     pp.add_argument(
@@ -111,7 +112,6 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
     for flag in ("episodes", "workers", "egos"):
         if getattr(args, flag) < 1:
             raise ValueError(f"--{flag} must be >= 1, got {getattr(args, flag)}")
-    min_future = paper.REAL_MIN_FUTURE if args.min_future is None else args.min_future
     base = parse_overrides(args.set)
     roads = ["intersection", "merge"] if args.scenario is None else args.scenario
     roads = [] if roads == ["none"] else roads
@@ -137,7 +137,7 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         args.batch,
         base=base,
         egos=args.egos,
-        min_future=min_future,
+        min_future=args.min_future,
         progress=not args.quiet,
         on_row=on_row,
         run=not args.tables_only,
@@ -163,7 +163,7 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         "episodes": args.episodes,
         "seed": args.seed,
         "egos": args.egos,
-        "min_future": min_future,
+        "min_future": args.min_future,
         "model": args.model,
         "settings": base,
         "tables_only": args.tables_only,

@@ -187,6 +187,11 @@ class Scene:
         return (self.num_steps - 1) * self.dt
 
     @property
+    def future_duration(self) -> float:
+        """s of log after "now" (``current_index``): the longest episode the scene holds."""
+        return (self.num_steps - 1 - self.current_index) * self.dt
+
+    @property
     def vehicle_mask(self) -> np.ndarray:
         """``[N]`` bool, True for agents of type ``"vehicle"``."""
         return self.agent_types == "vehicle"

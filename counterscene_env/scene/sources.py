@@ -18,7 +18,7 @@ A stored scene too short for an episode (no step after its "now", or its ego abs
 ``core.playable``) is skipped and counted in :data:`SKIPPED`; an episode on a short log ends
 with the log (``ClosedLoop`` caps its length at the log's last step). A stress run can ask for
 more: ``scenes_for(..., min_future=S)`` seats only stored scenes with at least ``S`` s of log
-after "now" (:func:`future_seconds`).
+after "now" (``Scene.future_duration``).
 """
 
 from __future__ import annotations
@@ -224,11 +224,6 @@ class SceneSource:
         return self._cache[spec]
 
 
-def future_seconds(scene: Scene) -> float:
-    """s of log after the scene's "now" (``current_index``): the longest episode it holds."""
-    return (scene.num_steps - 1 - scene.current_index) * scene.dt
-
-
 def scenes_for(
     spec: str,
     episodes: int,
@@ -248,7 +243,7 @@ def scenes_for(
     With ``ahead > 0`` a generated road's next seeds, up to ``ahead``, are recorded in a
     background process before they are asked for (``scene/prefetch.py``; not in a daemonic
     process): the same scenes, sooner. ``min_future`` [s]: a stored scene with less log after
-    its "now" (:func:`future_seconds`) is not seated (a generated road records a whole
+    its "now" (``Scene.future_duration``) is not seated (a generated road records a whole
     episode's length); a stored spec with no scene that long raises ``ValueError``.
     """
     if egos < 1:
@@ -287,7 +282,7 @@ def _stored_for(spec: str, episodes: int, egos: int, min_future: float) -> Itera
     for scene in stored_scenes(spec):
         if len(cache) == episodes:
             return
-        if future_seconds(scene) < min_future:
+        if scene.future_duration < min_future:
             short += 1
             continue
         cache.append(scene)

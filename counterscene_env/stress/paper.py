@@ -27,7 +27,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from counterscene_env.config import COMMONROAD_PREFIX, SCENARIONET_PREFIX
+from counterscene_env.config import COMMONROAD_PREFIX, REAL_MIN_FUTURE, SCENARIONET_PREFIX
 from counterscene_env.scene.sources import is_generated
 from counterscene_env.sim.config import SimConfig
 from counterscene_env.stress.config import StressConfig, run_identity
@@ -97,11 +97,6 @@ TABLES = {
 #: zero-shot table).
 GENERATED_TABLES = ("main", "selection", "ablation")
 REAL_TABLES = ("real",)
-#: s of log after its start that a real scene needs to be seated by default: the real-logs
-#: table's first horizon (3 s; ``report.paper_tables``). A shorter episode enters none of
-#: the table's columns, only its whole-episode rates, where it can hold no event and dilutes
-#: them (docs/reproducing_the_paper.md, "Real logs: short scenes").
-REAL_MIN_FUTURE = 3.0
 TABLE_ROWS = {**TABLES, "real": TABLES["main"]}
 
 
