@@ -234,3 +234,20 @@ def test_commonroad_spec_and_generate(tmp_path):
     main(["generate", "--from-commonroad", str(src), "--out", str(every), "--all-egos", "--quiet"])
     ids = [s.scenario_id for s, _ in iter_scenes(every)]
     assert ids == ["DEU_Toy-1_1_T-1/ego=10", "DEU_Toy-1_1_T-1/ego=11"]
+
+
+def test_sources_share_one_read_until_the_files_change(tmp_path):
+    """Envs drawing from one stored folder share its scenes (a vector env of N envs holds
+    one copy, read once), and a folder whose files change is read again."""
+    from counterscene_env.scene.sources import SceneSource
+
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "a.xml").write_text(_scenario(goal_x=90.0))
+    spec = f"commonroad:{src}"
+    rng = np.random.default_rng(0)
+    first, second = SceneSource(spec).draw(rng), SceneSource(spec).draw(rng)
+    assert first is second
+    (src / "c.xml").write_text(_scenario(steps=40, name="DEU_Other-1_1_T-1"))
+    drawn = {SceneSource(spec).draw(np.random.default_rng(s)).scenario_id for s in range(8)}
+    assert drawn == {"DEU_Toy-1_1_T-1/ego=10", "DEU_Other-1_1_T-1/ego=10"}

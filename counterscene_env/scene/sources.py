@@ -217,11 +217,43 @@ class SceneSource:
 
     def _scenes(self, spec: str) -> list[Scene]:
         if spec not in self._cache:
-            scenes = list(stored_scenes(spec))
-            if not scenes:
-                raise FileNotFoundError(f"{spec}: no scenes")
-            self._cache[spec] = scenes
+            self._cache[spec] = loaded_scenes(spec)
         return self._cache[spec]
+
+
+#: Stored specs read in this process: spec -> (the files' stamp, their playable scenes). The
+#: envs of one vector env (and a stress run's envs) draw from one list, not a copy each.
+_LOADED: dict[str, tuple[tuple, list[Scene]]] = {}
+#: Specs kept in :data:`_LOADED`; the oldest read is dropped first.
+LOADED_SPECS = 4
+
+
+def loaded_scenes(spec: str) -> list[Scene]:
+    """The playable scenes of a stored spec (:func:`stored_scenes`), read once per process
+    while its files are unchanged (same names, sizes and modification times). Scenes are
+    read-only records, so every :class:`SceneSource` of the process shares the one list.
+
+    Raises:
+        FileNotFoundError: the spec holds no playable scene.
+    """
+    stamp = _stamp(spec_path(spec))
+    kept = _LOADED.get(spec)
+    if kept is not None and kept[0] == stamp:
+        return kept[1]
+    scenes = list(stored_scenes(spec))
+    if not scenes:
+        raise FileNotFoundError(f"{spec}: no scenes")
+    _LOADED.pop(spec, None)
+    _LOADED[spec] = (stamp, scenes)
+    while len(_LOADED) > LOADED_SPECS:
+        del _LOADED[next(iter(_LOADED))]
+    return scenes
+
+
+def _stamp(path: Path) -> tuple:
+    """Names, sizes and modification times [ns] of the files at ``path`` (a file or a tree)."""
+    files = [path] if path.is_file() else sorted(f for f in path.rglob("*") if f.is_file())
+    return tuple((str(f), st.st_size, st.st_mtime_ns) for f in files for st in [f.stat()])
 
 
 def scenes_for(
