@@ -75,6 +75,7 @@ BAD_CONFIGS = [
     ({"duration": "5"}, TypeError, ["duration", "'5'"]),
     ({"guidance": ["full"]}, ValueError, ["guidance", "['full']", "none"]),
     ({"scenario": None}, ValueError, ["scenario", "None"]),
+    ({"scenario": "scenarionet:"}, ValueError, ["scenario", "names no path"]),
     ({"observation": "Kinematics"}, TypeError, ["observation", "'Kinematics'", "dict"]),
     ({"observation": {}}, ValueError, ["observation", "type"]),
     ({"observation": {**OBS, "features": []}}, ValueError, ["features", "[]"]),
@@ -115,6 +116,21 @@ def test_a_refused_reset_or_configure_changes_nothing(env, update, kind, words):
     # ... and the episode goes on.
     info = env.step(np.zeros(2, np.float32))[4]
     assert info["step"] == 2
+
+
+@pytest.mark.parametrize("prefix", ["", "scenarionet:", "commonroad:"])
+def test_a_folder_without_scenes_is_refused_before_anything_changes(env, tmp_path, prefix):
+    """A path that exists but holds no playable scene is refused when the config is set
+    (at make, by configure, by reset), naming the scenario: not at a later draw."""
+    spec = prefix + str(tmp_path)
+    with pytest.raises(ValueError, match="scenario"):
+        gym.make("CounterScene-v0", config={"scenario": spec})
+    before = snapshot(env)
+    with pytest.raises(ValueError, match="scenario"):
+        env.reset(options={"config": {"scenario": spec}})
+    assert snapshot(env) == before
+    assert env.step(np.zeros(2, np.float32))[4]["step"] == 2
+    env.reset()  # and a plain reset still works
 
 
 BAD_ACTIONS = [

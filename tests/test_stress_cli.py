@@ -126,7 +126,11 @@ def _without_timings(line: str) -> dict:
 
 
 def _files(directory) -> dict[str, bytes]:
-    return {p.name: p.read_bytes() for p in sorted(directory.iterdir())}
+    return {
+        str(p.relative_to(directory)): p.read_bytes()
+        for p in sorted(directory.rglob("*"))
+        if p.is_file()
+    }
 
 
 def test_a_stopped_run_resumes_without_repeating_an_episode(shard, tmp_path, capsys):
@@ -156,6 +160,13 @@ def test_a_stopped_run_resumes_without_repeating_an_episode(shard, tmp_path, cap
     summary = json.loads(out)
     assert summary["episodes"] == 3 and summary["complete"]
     assert (cut / "metrics.json").read_bytes() == (full / "metrics.json").read_bytes()
+    # Resuming with fewer episodes than it holds would leave a summary of 2 beside a log
+    # and report of 3: refused, and the directory left as it was.
+    before = _files(cut)
+    fewer = [a if a != "3" else "2" for a in args]
+    code, _, err = stress(capsys, *fewer, "--out", str(cut), "--resume")
+    assert code == 1 and "holds 3 finished episodes" in err and "--episodes 3 or more" in err
+    assert _files(cut) == before
 
 
 def test_two_runs_of_the_same_episodes_write_identical_metrics(shard, tmp_path, capsys):

@@ -193,6 +193,9 @@ def test_evaluate_model_json(trained, dataset, capsys):
     assert raw["lane_steering"] == 0 and raw["model"]["ade"] != model["ade"]
     assert main([*argv, "--quiet", "--lane-steering", "-1"]) == 1
     assert "--lane-steering must be >= 0" in capsys.readouterr().err
+    for bad in ("0", "-3"):
+        assert main([*argv, "--quiet", "--samples", bad]) == 1
+        assert f"--samples must be >= 1, got {bad}" in capsys.readouterr().err
     # The speed split: three bins, every agent in exactly one, each with the top level's keys.
     assert result["speed_bins_m_s"] == [0.5, 3.0] and result["skipped_scenes"] == 0
     by_speed = result["by_speed"]

@@ -134,6 +134,8 @@ def _real_scenes(args: argparse.Namespace) -> list:
 def _cmd_evaluate_model(args: argparse.Namespace) -> int:
     from counterscene_env.world_model.evaluate import evaluate_model
 
+    if args.samples < 1:
+        raise ValueError(f"--samples must be >= 1, got {args.samples}")
     model = load_model(args.model)
     if args.lane_steering is not None:
         if args.lane_steering < 0:

@@ -200,6 +200,13 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         identity = run_identity(config, args.model, env_config)
         n = config.episodes
         log = EpisodeLog(args.out, identity, args.resume, lambda r: summarize(r[:n], config))
+        if len(log.records) > n:
+            # Its summary would count n episodes and its report every recorded one.
+            raise ValueError(
+                f"--out {args.out} holds {len(log.records)} finished episodes of this run, "
+                f"more than --episodes {n}: resume with --episodes {len(log.records)} or "
+                "more, or pick another --out"
+            )
     before = 0 if log is None else len(log.records[: config.episodes])
     start = time.perf_counter()
     try:

@@ -27,6 +27,7 @@ from highway_env.road.lane import (
 from highway_env.road.road import RoadNetwork
 
 from counterscene_env.geometry import arc_length, points_in_area
+from counterscene_env.scene.lane_search import IndexedRoadNetwork, fast_poly_lane
 
 #: Spacing of the sampled centre lines and lane-surface outlines, m.
 SAMPLE_SPACING = 1.0
@@ -195,7 +196,7 @@ class RoadMap:
             for i, succ in enumerate(successors)
         ]
         start, end = _lane_nodes(n, links)
-        network = RoadNetwork()
+        network = IndexedRoadNetwork()
         kept_lines, kept_widths, surfaces = [], [], []
         for i, (line, width, poly) in enumerate(zip(lines, widths, polygons, strict=True)):
             if poly is not None and len(poly) >= 3:
@@ -255,7 +256,7 @@ def network_to_json(network: RoadNetwork) -> str:
 
 def network_from_json(text: str) -> RoadNetwork:
     """Rebuild a network written by :func:`network_to_json`; unknown lane classes are refused."""
-    network = RoadNetwork()
+    network = IndexedRoadNetwork()
     for entry in json.loads(text):
         name = entry.get("class")
         if name not in _LANE_CLASSES:
@@ -327,7 +328,7 @@ def _poly_lane(points: np.ndarray, width: float, **kwargs) -> PolyLaneFixedWidth
     """
     if kwargs.get("line_types") is None:
         kwargs["line_types"] = (LineType.STRIPED, LineType.STRIPED)
-    lane = PolyLaneFixedWidth(points.tolist(), width=width, **kwargs)
+    lane = fast_poly_lane(PolyLaneFixedWidth(points.tolist(), width=width, **kwargs))
     lane.source_points = np.asarray(points, dtype=np.float64)
     return lane
 

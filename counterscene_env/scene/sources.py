@@ -67,6 +67,10 @@ def check_spec(spec: str) -> str:
         for part in parts:
             check_spec(part)
         return spec
+    bare = spec.removeprefix(SCENARIONET_PREFIX).removeprefix(COMMONROAD_PREFIX)
+    if spec not in Scenario.values() and not bare.strip():
+        # An empty path would read the working directory.
+        raise ValueError(f"scenario {spec!r} names no path")
     if spec not in Scenario.values() and not spec_path(spec).exists():
         raise ValueError(
             f"unknown scenario {spec!r}: not one of {list(Scenario.values())}, and no such "
@@ -116,8 +120,10 @@ class SceneSource:
         spec: a scenario name, ``scenarionet:DIR``, a dataset path, or a non-empty list of them.
 
     Raises:
-        ValueError: an unknown name, or a path that does not exist (checked at construction,
-            so a bad config fails at ``gym.make``, not at the first reset).
+        ValueError: an unknown name, a path that does not exist, or a stored spec with no
+            playable scene (checked at construction: its scenes are read then, once per
+            process, so a bad config fails at ``gym.make`` or is refused by ``reset``, not
+            at a draw).
     """
 
     def __init__(self, spec: str | Sequence[str]) -> None:
@@ -127,6 +133,12 @@ class SceneSource:
             raise ValueError(f"scenario must be a name, a path or a list of them, got {spec!r}")
         self.specs = [check_spec(s) for s in specs]
         self._cache: dict[str, list[Scene]] = {}
+        for part in self.specs:
+            if part not in Scenario.values():
+                try:
+                    self._scenes(part)
+                except FileNotFoundError as err:
+                    raise ValueError(f"scenario {part!r}: {err}") from None
         #: The coming draws, in order: (spec, seed or index), and the recording made ahead
         #: for a generated road's.
         self._ahead: list[tuple[tuple[str, int], prefetch.Prefetch | None]] = []
@@ -242,7 +254,10 @@ def loaded_scenes(spec: str) -> list[Scene]:
         return kept[1]
     scenes = list(stored_scenes(spec))
     if not scenes:
-        raise FileNotFoundError(f"{spec}: no scenes")
+        raise FileNotFoundError(
+            f"no playable scene in {spec_path(spec)} (no scene files, or every scene too "
+            "short for an episode)"
+        )
     _LOADED.pop(spec, None)
     _LOADED[spec] = (stamp, scenes)
     while len(_LOADED) > LOADED_SPECS:
