@@ -305,3 +305,24 @@ def test_aggregate_groups_are_means_of_seconds():
     assert math.isnan(agg["overall"]["hbr_paper"])
     with pytest.raises(ValueError):
         metrics.aggregate([])
+
+
+def test_horizons_an_episode_never_reached_have_no_value_in_the_tables():
+    """An episode on a short log ends with the log; its record carries the rollout's values
+    on, but the stress tables (as paper-tables) count only episodes that reached a horizon:
+    one that ended at 3 s without a collision is not collision-free "at 10 s"."""
+    from counterscene_env.report.tables import horizon_table, per_second_table
+
+    def record(rollout, cr):
+        per = {
+            str(h): {"ADE": 1.0, "FDE": 1.0, "ORR": 0.0, "HBR": 0.0, "CR": cr} for h in range(1, 11)
+        }
+        return {"per_second": per, "rollout_s": rollout, "cr": cr}
+
+    short, long = record(3.0, 0.0), record(10.0, 1.0)
+    agg = metrics.aggregate([short, long])
+    assert agg["per_second"]["3"]["CR"] == pytest.approx(0.5)
+    assert agg["per_second"]["4"]["CR"] == 1.0 and agg["groups"]["8-10s"]["CR"] == 1.0
+    assert per_second_table([short, long])["10"]["CR"].n == 1
+    assert horizon_table([short, long])["8-10s"]["CR"].value == 1.0
+    assert metrics.horizon_values(short, "3") and metrics.horizon_values(short, "4") == {}

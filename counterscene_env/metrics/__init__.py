@@ -50,6 +50,7 @@ from counterscene_env.metrics.realism import (
 from counterscene_env.metrics.report import (
     aggregate,
     evaluate_scene,
+    horizon_values,
     json_safe,
 )
 from counterscene_env.metrics.safety import (
@@ -86,6 +87,7 @@ __all__ = [
     "hbr_ego",
     "hbr_paper",
     "horizon_steps",
+    "horizon_values",
     "json_safe",
     "longitudinal_acceleration",
     "min_clearance",

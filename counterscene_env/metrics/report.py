@@ -46,6 +46,17 @@ def second_key(h: float) -> str:
     return f"{h:g}"
 
 
+def horizon_values(record: dict, second: str) -> dict:
+    """A record's per-second values at horizon ``second`` (a key of its ``per_second``), or
+    ``{}`` where its rollout ended before that second. An episode on a short log ends with
+    the log; its record carries the whole rollout's values to the later horizons ("within
+    h"), but the horizon tables count only the episodes that reached a horizon, as
+    ``paper-tables`` does (docs/metrics.md)."""
+    if float(second) > float(record.get("rollout_s", math.inf)) + 1e-6:
+        return {}
+    return record["per_second"].get(second, {})
+
+
 def evaluate_scene(
     sim: Scene,
     factual: Scene | None = None,
@@ -157,7 +168,7 @@ def aggregate(records: Sequence[dict]) -> dict:
     seconds = sorted({k for r in records for k in r["per_second"]}, key=float)
     per_second = {
         s: {
-            key: nan_mean([r["per_second"].get(s, {}).get(key, math.nan) for r in records])
+            key: nan_mean([horizon_values(r, s).get(key, math.nan) for r in records])
             for key in PER_SECOND_KEYS
         }
         for s in seconds

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from counterscene_env.metrics import HARD_BRAKE_THRESHOLD
+from counterscene_env.metrics import HARD_BRAKE_THRESHOLD, horizon_values
 from counterscene_env.report import stats
 from counterscene_env.report.stats import Estimate, Paired
 
@@ -150,12 +150,10 @@ def per_episode(records: Sequence[dict], key: str, seconds: Sequence[int]) -> np
     episode's rollout did not reach that second (or nothing was measured)."""
     out = np.full((len(records), len(seconds)), np.nan)
     for i, r in enumerate(records):
-        reach = float(r.get("rollout_s", math.inf)) + 1e-6
         for j, s in enumerate(seconds):
-            row = r["per_second"].get(f"{s:g}")
-            if row is None or s > reach:
-                continue
-            out[i, j] = _value(r, row, key)
+            row = horizon_values(r, f"{s:g}")
+            if row:
+                out[i, j] = _value(r, row, key)
     return out
 
 

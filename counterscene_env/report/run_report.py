@@ -71,8 +71,8 @@ def what_was_run(run: Run, command: str) -> list[Block]:
         f"ego planner: {ident.get('planner', '?')}; world model: {ident.get('model', '?')}",
         f"adversary: selector {sim.get('selector', '?')} on the {sim.get('selection_source', '?')}"
         f", guidance {sim.get('guidance', '?')}, {sim.get('num_samples', '?')} samples per "
-        f"replan, replan every {sim.get('replan_every', '?')} steps, episodes of "
-        f"{sim.get('duration', '?')} s",
+        f"replan, replan every {sim.get('replan_every', '?')} steps, episodes of up to "
+        f"{sim.get('duration', '?')} s{_short_logs(run, sim.get('duration'))}",
         "other settings: " + ", ".join(f"{k}={v}" for k, v in sim.items() if k not in _SHOWN),
     ]
     if planned and done < planned:
@@ -88,6 +88,19 @@ def what_was_run(run: Run, command: str) -> list[Block]:
         Bullets(tuple(items)),
         Paragraph(f"Rerun (command.txt): {command}"),
     ]
+
+
+def _short_logs(run: Run, duration: float | None) -> str:
+    """How many episodes ended with their log before ``duration`` s (real logs)."""
+    if not isinstance(duration, int | float):
+        return ""
+    short = sum(float(r.get("rollout_s", duration)) < duration - 1e-6 for r in run.records)
+    if not short:
+        return ""
+    return (
+        f" ({short} of {len(run.records)} ended with their log sooner; a horizon counts "
+        "only the episodes that reached it)"
+    )
 
 
 def _timing(run: Run) -> str:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from counterscene_env.metrics import GROUPS, PER_SECOND_KEYS
+from counterscene_env.metrics import GROUPS, PER_SECOND_KEYS, horizon_values
 from counterscene_env.report import stats
 from counterscene_env.report.stats import Estimate
 
@@ -103,10 +103,10 @@ COMPARE_KEYS = ("cr", "cr_ego_adversary", "hbr_ego", "orr", "ade")
 
 def per_second_values(records: Sequence[dict], key: str) -> tuple[list[str], np.ndarray]:
     """The horizon seconds of a run (sorted) and ``[E, S]`` per-episode values of per-second
-    ``key`` (NaN where an episode has none)."""
+    ``key`` (NaN where an episode has none, or ended before that second)."""
     seconds = sorted({s for r in records for s in r["per_second"]}, key=float)
     values = np.array(
-        [[r["per_second"].get(s, {}).get(key, np.nan) for s in seconds] for r in records],
+        [[horizon_values(r, s).get(key, np.nan) for s in seconds] for r in records],
         dtype=np.float64,
     ).reshape(len(records), len(seconds))
     return seconds, values
