@@ -77,7 +77,7 @@ def test_same_answers_as_highway_env(maps, x, y, heading):
     point = np.array([x, y])
     index = network.get_closest_lane_index(point, heading)
     assert index == stock.get_closest_lane_index(point, heading)
-    for (start, to), (_, stock_to) in zip(network.graph.items(), stock.graph.items(), strict=True):
+    for (_, to), (_, stock_to) in zip(network.graph.items(), stock.graph.items(), strict=True):
         for end, lanes in to.items():
             for fast, slow in zip(lanes, stock_to[end], strict=True):
                 s, r = fast.local_coordinates(point)

@@ -58,9 +58,6 @@ class PolylineSpline(LinearSpline2D):
         self._ox, self._oy = self.origins[:, 0].copy(), self.origins[:, 1].copy()
         self._tx, self._ty = self.tangents[:, 0].copy(), self.tangents[:, 1].copy()
 
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
-
     def stop_index(self, position: np.ndarray) -> int | None:
         """The sample ``cartesian_to_frenet`` stops at: the last one from index 1 on with the
         point at or ahead of it (projection >= 0), else 0; None where rounding could decide."""
