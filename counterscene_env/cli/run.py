@@ -199,7 +199,7 @@ def _cmd_stress(args: argparse.Namespace) -> int:
     if args.out:
         identity = run_identity(config, args.model, env_config)
         n = config.episodes
-        log = EpisodeLog(args.out, identity, args.resume, lambda r: summarize(r[:n], config))
+        log = EpisodeLog(args.out, identity, args.resume, lambda r: summarize(r, config))
         if len(log.records) > n:
             # Its summary would count n episodes and its report every recorded one.
             raise ValueError(
@@ -207,7 +207,7 @@ def _cmd_stress(args: argparse.Namespace) -> int:
                 f"more than --episodes {n}: resume with --episodes {len(log.records)} or "
                 "more, or pick another --out"
             )
-    before = 0 if log is None else len(log.records[: config.episodes])
+    before = 0 if log is None else len(log.records)
     start = time.perf_counter()
     try:
         records = _run_stress(args, config, model, env_config, log)
@@ -323,7 +323,7 @@ def _stress_stopped(args: argparse.Namespace, config, log, wall: float, before: 
     and how to go on."""
     from counterscene_env.stress import summarize, timings, write_summary, write_timings
 
-    records = [] if log is None else log.reload()[: config.episodes]
+    records = [] if log is None else log.reload()
     if log is None:
         msg = "without --out the finished episodes are not kept; pass --out DIR to keep them"
     elif not records:

@@ -55,14 +55,12 @@ class PolylineSpline(LinearSpline2D):
         self.tangents = np.array([pose.normal for pose in self.poses], dtype=float)
         self.normals = np.array([pose.orthonormal for pose in self.poses], dtype=float)
         self.sample_list = [float(s) for s in self.s_samples]
-        self._ox, self._oy = self.origins[:, 0].copy(), self.origins[:, 1].copy()
-        self._tx, self._ty = self.tangents[:, 0].copy(), self.tangents[:, 1].copy()
 
     def stop_index(self, position: np.ndarray) -> int | None:
         """The sample ``cartesian_to_frenet`` stops at: the last one from index 1 on with the
         point at or ahead of it (projection >= 0), else 0; None where rounding could decide."""
-        x, y = float(position[0]), float(position[1])
-        p = (x - self._ox) * self._tx + (y - self._oy) * self._ty  # [n] m
+        (ox, oy), (tx, ty) = self.origins.T, self.tangents.T
+        p = (float(position[0]) - ox) * tx + (float(position[1]) - oy) * ty  # [n] m
         ahead = p >= TOL
         ahead[0] = False  # sample 0 is the fallback whatever its sign
         k = len(p) - 1 - int(ahead[::-1].argmax())
