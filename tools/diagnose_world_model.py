@@ -13,8 +13,10 @@ and valid 3 s later are scored; for each:
   course change by then [deg], the speed change over 3 s (mean, mean size, and its
   correlation with the log's: does the prediction know who speeds up and who slows down?), for the model (one sample, as configured), the network alone
   (no final-step lane keeping), the network with no lane map at all, the model with every
-  vehicle stopped now taken out of the window (do parked cars read as queued traffic?), the
-  model with the
+  vehicle stopped now taken out of the window (do parked cars read as queued traffic?), and
+  with only those on or beside a lane, or only those off the street (more than
+  ``parked.LOT_CLEARANCE`` m outside every lane strip of the window: lots, driveways) taken
+  out, the model with the
   history's past speeds smoothed over 0.5 s ("now" kept: are jumpy real-log speeds what
   misleads it?), the log's own action
   tokens rolled out through the model's unicycle (what the action space can express),
@@ -26,6 +28,9 @@ and valid 3 s later are scored; for each:
 - ``actions``: the logged action tokens [m/s^2, rad/s]: median and 90th percentile of their
   size, and their mean and spread in the model's normalised units; the same percentiles of
   the history's frame-to-frame speed changes [m/s];
+- ``by_map``: the model's and constant velocity's ADE over 0-3 s of the moving agents, summed
+  over each map the scenes name (``metadata["map"]``: nuScenes' Boston and Singapore
+  districts; left- against right-hand traffic), and their ratio;
 - ``lanes``: lane segments within 30 m of a moving agent, segment lengths and widths, and the
   share of the agents' logged positions over 3 s more than 0.5 m outside every lane the
   model's window holds.
@@ -49,6 +54,7 @@ from counterscene_env.world_model.dataset import SceneWindowDataset
 from counterscene_env.world_model.evaluate import constant_velocity, start_steps
 from counterscene_env.world_model.map_guidance import lane_excess
 from counterscene_env.world_model.overlap import new_overlaps
+from counterscene_env.world_model.parked import LOT_CLEARANCE
 from counterscene_env.world_model.window import lane_segments
 
 HORIZON = 30  # 3 s at 10 Hz
@@ -131,20 +137,53 @@ def ca_track(model, batch, state, window: int = 10) -> torch.Tensor:
     return torch.cat([xy, yaw[..., None].expand(*dist.shape, 1)], -1)
 
 
+def one_sample(model, b, seed: int, **kw) -> torch.Tensor:
+    """One sample per window of ``b``, 16 windows per call, as ``[B, K, F, 4]``."""
+    g = torch.Generator().manual_seed(seed)
+    out = []
+    for lo in range(0, b["history"].shape[0], 16):
+        part = {k: v[lo : lo + 16] for k, v in b.items()}
+        with torch.no_grad():
+            out.append(model.sample(part, 1, g, **kw).trajectory[:, 0])
+    return torch.cat(out)
+
+
+def by_map(model, scenes, batch, state, sel, seed: int) -> dict[str, dict]:
+    """ADE over 0-3 s of the moving agents ``sel``, the model's (one sample) and constant
+    velocity's, summed per map the scenes name (``metadata["map"]``)."""
+    fut, fok = batch["future"][..., :HORIZON, :2], batch["future_valid"][..., :HORIZON]
+
+    def ade(pred):
+        err = (pred[..., :HORIZON, :2] - fut).norm(dim=-1)
+        return (err * fok).sum(-1) / fok.sum(-1).clamp(min=1)  # [B, K]
+
+    model_ade = ade(one_sample(model, batch, seed))
+    cv_ade = ade(cv_track(model, state, state[..., 2]))
+    names = np.array([str(s.metadata.get("map", "?")) for s in scenes])
+    window_map = names[batch["scene_index"].numpy()]
+    out = {}
+    for name in sorted(set(window_map)):
+        rows = torch.from_numpy(window_map == name)[:, None] & sel
+        m, c = float(model_ade[rows].sum()), float(cv_ade[rows].sum())
+        out[name] = {"agents": int(rows.sum()), "model": m, "cv": c, "ratio": m / max(c, 1e-9)}
+    return out
+
+
 def variants(model, batch, state, sel, seed: int) -> dict[str, dict]:
     def sample(b, **kw):
-        g = torch.Generator().manual_seed(seed)
-        out = []
-        for lo in range(0, b["history"].shape[0], 16):
-            part = {k: v[lo : lo + 16] for k, v in b.items()}
-            with torch.no_grad():
-                out.append(model.sample(part, 1, g, **kw).trajectory[:, 0])
-        return torch.cat(out)
+        return one_sample(model, b, seed, **kw)
 
     no_map = {**batch, "map_valid": torch.zeros_like(batch["map_valid"])}
     # Every vehicle stopped now (mostly parked on real streets) taken out of the window.
     stopped = model.agent_mask(batch) & (state[..., 3].abs() < STOPPED)
     no_stopped = {**batch, "agent_valid": batch["agent_valid"] & ~stopped}
+    # ... split by where they stand: off the street (lots, driveways) or on or beside a lane.
+    outside = lane_excess(
+        state[:, :, None, :2], batch["map"], batch["map_valid"], batch["map_widths"]
+    )[..., 0]
+    off_street = stopped & (outside > LOT_CLEARANCE)
+    no_off_street = {**batch, "agent_valid": batch["agent_valid"] & ~off_street}
+    no_street_side = {**batch, "agent_valid": batch["agent_valid"] & ~(stopped & ~off_street)}
     smooth = {**batch, "history": smoothed_speeds(batch["history"], batch["history_valid"])}
     actions, _ = model.target_actions(batch)
     with torch.no_grad():
@@ -154,6 +193,8 @@ def variants(model, batch, state, sel, seed: int) -> dict[str, dict]:
         "network": sample(batch, lane_steering=0),
         "network_no_map": sample(no_map, lane_steering=0),
         "model_without_stopped_cars": sample(no_stopped),
+        "model_without_stopped_off_street": sample(no_off_street),
+        "model_without_stopped_on_or_beside_lanes": sample(no_street_side),
         "smoothed_history": sample(smooth),
         "logged_actions": logged,
         "constant_velocity": cv_track(model, state, state[..., 2]),
@@ -287,6 +328,7 @@ def main() -> None:
             "log_speed3": float(batch["future"][..., HORIZON - 1, 3][sel].abs().mean()),
             "variants": variants(model, batch, state, sel, args.seed),
             "course": course_test(model, batch, state, sel),
+            "by_map": by_map(model, scenes, batch, state, sel, args.seed),
             "actions": action_stats(model, batch, sel),
             "lanes": lane_stats(scenes, batch, sel),
         }
