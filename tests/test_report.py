@@ -139,6 +139,8 @@ def test_records_without_a_plotted_field_get_a_report_that_names_it(template, tm
 
 def test_the_table_matches_metrics_json_and_rates_carry_wilson_intervals(template, tmp_path):
     run = load_run(write_run(tmp_path / "run", mixed(template)))
+    # Each episode's timings, kept apart on disk, come back with its record.
+    assert all(r["seconds"] == 1.0 and r["replan_seconds"] == 0.4 for r in run.records)
     table = horizon_table(run.records)
     for group, row in run.summary["horizons"].items():
         for key, value in row.items():

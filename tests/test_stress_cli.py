@@ -60,6 +60,11 @@ def test_stress_json_summary_and_episode_records(shard, tmp_path, capsys):
     assert timings["seconds_per_episode"] > 0 and timings["wall_seconds"] > 0
     lines = (out_dir / "episodes.jsonl").read_text().splitlines()
     assert len(lines) == 3
+    # Each episode's own timings live apart too, in episode_timings.jsonl.
+    assert not any(k in json.loads(x) for x in lines for k in ("seconds", "replan_seconds"))
+    rows = [json.loads(x) for x in (out_dir / "episode_timings.jsonl").read_text().splitlines()]
+    assert [r["episode"] for r in rows] == [0, 1, 2]
+    assert all(r["seconds"] > 0 and r["replan_seconds"] > 0 for r in rows)
     first = json.loads(lines[0])
     assert first["scenario_id"] == "merge/seed=1" and first["rollout_s"] == pytest.approx(2.0)
     # Episodes 0 and 2 run the same scene with different seeds (noise).
@@ -124,13 +129,6 @@ def test_stress_flags_reach_the_run(shard, capsys):
     assert sim["max_windows"] == 2 and sim["sampler"] is None  # not given: the default
 
 
-def _without_timings(line: str) -> dict:
-    record = json.loads(line)
-    for key in ("seconds", "replan_seconds"):
-        record.pop(key)
-    return record
-
-
 def _files(directory) -> dict[str, bytes]:
     return {
         str(p.relative_to(directory)): p.read_bytes()
@@ -161,8 +159,7 @@ def test_a_stopped_run_resumes_without_repeating_an_episode(shard, tmp_path, cap
     code, out, _ = stress(capsys, *args, "--out", str(cut), "--resume")
     assert code == 0
     resumed = (cut / "episodes.jsonl").read_text().splitlines()
-    assert resumed[0] == lines[0]  # kept, not run again
-    assert [_without_timings(x) for x in resumed] == [_without_timings(x) for x in lines]
+    assert resumed == lines  # the first kept, not run again; the others as a whole run's
     summary = json.loads(out)
     assert summary["episodes"] == 3 and summary["complete"]
     assert (cut / "metrics.json").read_bytes() == (full / "metrics.json").read_bytes()
@@ -175,14 +172,14 @@ def test_a_stopped_run_resumes_without_repeating_an_episode(shard, tmp_path, cap
     assert _files(cut) == before
 
 
-def test_two_runs_of_the_same_episodes_write_identical_metrics(shard, tmp_path, capsys):
-    """Timings (which differ run to run) are in timings.json, so metrics.json is the same."""
+def test_two_runs_of_the_same_episodes_write_identical_results(shard, tmp_path, capsys):
+    """Timings (which differ run to run) are in timings.json and episode_timings.jsonl, so
+    metrics.json and episodes.jsonl are the same, byte for byte."""
     args = ["--scenario", shard, "--episodes", "2", "--duration", "0.5", "--quiet"]
     for name in ("a", "b"):
         assert stress(capsys, *args, "--out", str(tmp_path / name))[0] == 0
-    assert (tmp_path / "a" / "metrics.json").read_bytes() == (
-        tmp_path / "b" / "metrics.json"
-    ).read_bytes()
+    for name in ("metrics.json", "episodes.jsonl"):
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
     timings = [json.loads((tmp_path / n / "timings.json").read_text()) for n in ("a", "b")]
     assert timings[0]["wall_seconds"] != timings[1]["wall_seconds"]  # they do differ
 
@@ -235,7 +232,7 @@ def test_a_killed_stress_process_loses_no_finished_episode(shard, tmp_path):
     resumed = log.read_text().splitlines()
     whole = (tmp_path / "whole" / "episodes.jsonl").read_text().splitlines()
     assert resumed[: len(kept) - 1] == kept[: len(kept) - 1]  # finished ones untouched
-    assert [_without_timings(x) for x in resumed] == [_without_timings(x) for x in whole]
+    assert resumed == whole
     metrics = [(tmp_path / d / "metrics.json").read_bytes() for d in ("killed", "whole")]
     assert metrics[0] == metrics[1]
 
@@ -254,3 +251,34 @@ def test_a_log_whose_last_line_lost_its_newline_appends_on_a_new_line(tmp_path):
     log.append([{"episode": 2}])
     lines = (tmp_path / "episodes.jsonl").read_text().splitlines()
     assert [json.loads(x)["episode"] for x in lines] == [0, 1, 2]
+
+
+def test_episode_timings_are_read_back_and_a_lost_one_is_left_out(tmp_path):
+    """A record's timings go to episode_timings.jsonl and come back on reading; an episode
+    whose timings a kill lost (they are written first, so only a cut line can be missing)
+    counts in neither the results nor the timing means."""
+    from counterscene_env.stress import EpisodeLog, timings
+
+    identity = {"scenario": "merge"}
+    log = EpisodeLog(tmp_path, identity)
+    log.append([{"episode": 0, "replans": 2, "seconds": 1.5, "replan_seconds": 1.0}])
+    log.append([{"episode": 1, "replans": 2, "seconds": 2.5, "replan_seconds": 2.0}])
+    assert json.loads((tmp_path / "episodes.jsonl").read_text().splitlines()[1]) == {
+        "episode": 1,
+        "replans": 2,
+    }
+    again = EpisodeLog(tmp_path, identity, resume=True).records
+    assert [(r["seconds"], r["replan_seconds"]) for r in again] == [(1.5, 1.0), (2.5, 2.0)]
+    assert timings(again)["seconds_per_episode"] == 2.0
+    path = tmp_path / "episode_timings.jsonl"
+    path.write_text(path.read_text().splitlines()[0] + "\n" + '{"episode": 1, "sec')
+    cut = EpisodeLog(tmp_path, identity, resume=True).records
+    assert "seconds" not in cut[1] and cut[1]["replans"] == 2
+    assert timings(cut)["seconds_per_episode"] == 1.5
+    assert timings(cut)["seconds_per_replan"] == 0.5
+    # A run written before the split (timings inside episodes.jsonl) reads the same.
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "run.json").write_text(json.dumps(identity))
+    (old / "episodes.jsonl").write_text(json.dumps(log.records[0]) + "\n")
+    assert EpisodeLog(old, identity, resume=True).records == again[:1]

@@ -12,7 +12,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from counterscene_env.stress.log import record_from_json
+from counterscene_env.stress.log import merge_timings, record_from_json
 
 #: Record fields every report and comparison reads; a record without one is refused.
 REQUIRED_FIELDS = (
@@ -135,4 +135,4 @@ def _read_records(path: Path) -> tuple[list[dict], int]:
         records.append(record_from_json(rec))
     if not records:
         raise ValueError(f"{path}: no finished episode")
-    return records, cut
+    return merge_timings(records, path.parent), cut

@@ -33,9 +33,15 @@ from counterscene_env.stress.episodes import (
     run_episodes,
     run_policy_episodes,
 )
-from counterscene_env.stress.log import EpisodeLog, write_outputs, write_summary, write_timings
+from counterscene_env.stress.log import (
+    TIMING_KEYS,
+    EpisodeLog,
+    write_outputs,
+    write_summary,
+    write_timings,
+)
 from counterscene_env.stress.ray_backend import run_ray
-from counterscene_env.stress.summary import TIMING_KEYS, summarize, timings
+from counterscene_env.stress.summary import summarize, timings
 from counterscene_env.stress.workers import run_parallel
 
 __all__ = [

@@ -1,5 +1,11 @@
-"""A stress run's files: ``DIR/episodes.jsonl`` (:class:`EpisodeLog`), ``DIR/run.json``,
-``DIR/metrics.json`` and ``DIR/timings.json``."""
+"""A stress run's files: ``DIR/episodes.jsonl`` (:class:`EpisodeLog`), beside it
+``DIR/episode_timings.jsonl``, ``DIR/run.json``, ``DIR/metrics.json`` and ``DIR/timings.json``.
+
+Results and wall-clock figures live in separate files, so that two runs of the same episodes
+write identical ``episodes.jsonl`` and ``metrics.json``: an episode record's
+:data:`TIMING_KEYS` go to ``episode_timings.jsonl`` (``{"episode": i, "seconds": ..,
+"replan_seconds": ..}`` per line) and are merged back into the records on reading. Runs
+written before the split keep their timings inside ``episodes.jsonl``; they read the same."""
 
 from __future__ import annotations
 
@@ -11,12 +17,19 @@ from pathlib import Path
 
 from counterscene_env import metrics
 
+#: Per-episode record keys that are wall-clock timings [s]: written to
+#: ``episode_timings.jsonl``, never to ``episodes.jsonl``; nothing in ``metrics.json``
+#: depends on them.
+TIMING_KEYS = ("seconds", "replan_seconds")
+#: The per-episode timings' file, beside ``episodes.jsonl``.
+TIMINGS_FILE = "episode_timings.jsonl"
+
 
 class EpisodeLog:
     """A stress run's durable record: ``DIR/episodes.jsonl``, one line per finished episode.
 
-    Each batch's records are appended, flushed and synced to disk as the batch finishes, so a
-    killed run (Ctrl-C, a crash, a lost machine) loses only the episodes in flight. With
+    Each batch's records are appended, flushed and synced to disk as the batch finishes (their
+    timings to ``DIR/episode_timings.jsonl`` first, module docstring), so a killed run (Ctrl-C, a crash, a lost machine) loses only the episodes in flight. With
     ``resume``, the run continues after the last recorded episode; a larger ``--episodes``
     extends it. ``DIR/run.json`` holds what the run is (the config but its episode count, and
     the model): a run with anything else is refused, so one directory never mixes two runs.
@@ -49,6 +62,7 @@ class EpisodeLog:
         if self.dir.exists() and not self.dir.is_dir():
             raise ValueError(f"--out {self.dir} is a file, not a directory")
         self.path = self.dir / "episodes.jsonl"
+        self.timings_path = self.dir / TIMINGS_FILE
         self.identity = json.loads(json.dumps(metrics.json_safe(identity)))
         self.summarize = summarize
         run = self.dir / "run.json"
@@ -91,7 +105,7 @@ class EpisodeLog:
         for i, rec in enumerate(records):
             if rec.get("episode") != i:
                 raise ValueError(f"{self.path}: line {i + 1} is not episode {i}")
-        return [record_from_json(rec) for rec in records]
+        return merge_timings([record_from_json(rec) for rec in records], self.dir)
 
     def append(self, records: Sequence[dict]) -> None:
         """Add finished episodes, on disk before this returns (and ``metrics.json``, with
@@ -103,12 +117,11 @@ class EpisodeLog:
         if self._kept is not None:
             self.path.write_text("".join(f"{x}\n" for x in self._kept))
             self._kept = None
-        # One write call: Ctrl-C (raised between Python statements) never splits a batch.
-        text = "".join(json.dumps(metrics.json_safe(rec)) + "\n" for rec in records)
-        with open(self.path, "a") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
+        results, timings = zip(*(split_timings(rec) for rec in records), strict=True)
+        # The timings first: a kill between the two writes leaves episodes without timings
+        # (read as such), never results that a rerun would append again.
+        _append_lines(self.timings_path, timings)
+        _append_lines(self.path, results)
         self.records += list(records)
         if self.summarize is not None:
             write_summary(self.dir, self.summarize(self.records))
@@ -118,6 +131,49 @@ class EpisodeLog:
         strike between an append's write and its bookkeeping, the file is the truth."""
         self.records = self._read()
         return self.records
+
+
+def split_timings(record: dict) -> tuple[dict, dict]:
+    """An episode record as ``(its results, {"episode": i, its TIMING_KEYS})``."""
+    results = {k: v for k, v in record.items() if k not in TIMING_KEYS}
+    timing = {"episode": record.get("episode")}
+    timing.update({k: record[k] for k in TIMING_KEYS if k in record})
+    return results, timing
+
+
+def merge_timings(records: list[dict], directory: str | os.PathLike) -> list[dict]:
+    """``records`` (in episode order) with the timings of ``DIR/episode_timings.jsonl``
+    merged in, where the file has them; a line cut short by a kill, or timings of episodes
+    the records do not hold, are ignored. Records that carry their own timings (runs written
+    before the split) keep them."""
+    path = Path(directory) / TIMINGS_FILE
+    if not path.is_file():
+        return records
+    found: dict[int, dict] = {}
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(row, dict) and isinstance(row.get("episode"), int):
+            found[row["episode"]] = row
+    out = []
+    for rec in records:
+        row = found.get(rec.get("episode"))
+        if row is not None:
+            rec = {**rec, **{k: row[k] for k in TIMING_KEYS if k in row and k not in rec}}
+        out.append(rec)
+    return out
+
+
+def _append_lines(path: Path, rows: Sequence[dict]) -> None:
+    """Append one JSON line per row, on disk before this returns. One write call: Ctrl-C
+    (raised between Python statements) never splits a batch."""
+    text = "".join(json.dumps(metrics.json_safe(row)) + "\n" for row in rows)
+    with open(path, "a") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def record_from_json(record: dict) -> dict:
@@ -164,12 +220,16 @@ def write_outputs(
     records: Sequence[dict],
     timings: dict | None = None,
 ) -> None:
-    """``DIR/metrics.json`` (the summary), ``DIR/episodes.jsonl`` (one line per episode,
-    rewritten whole) and, if given, ``DIR/timings.json``: a run kept in memory, not through
-    an :class:`EpisodeLog`."""
+    """``DIR/metrics.json`` (the summary), ``DIR/episodes.jsonl`` and
+    ``DIR/episode_timings.jsonl`` (one line per episode, rewritten whole) and, if given,
+    ``DIR/timings.json``: a run kept in memory, not through an :class:`EpisodeLog`."""
     write_summary(directory, summary)
-    with open(Path(directory) / "episodes.jsonl", "w") as f:
-        for rec in records:
-            f.write(json.dumps(metrics.json_safe(rec)) + "\n")
+    results, rows = (
+        zip(*(split_timings(rec) for rec in records), strict=True) if records else ((), ())
+    )
+    for name, lines in (("episodes.jsonl", results), (TIMINGS_FILE, rows)):
+        with open(Path(directory) / name, "w") as f:
+            for row in lines:
+                f.write(json.dumps(metrics.json_safe(row)) + "\n")
     if timings is not None:
         write_timings(directory, timings)

@@ -13,10 +13,6 @@ from counterscene_env import metrics
 from counterscene_env.scene.sources import SKIPPED
 from counterscene_env.stress.config import StressConfig
 
-#: Per-episode record keys that are wall-clock timings [s] (``episodes.jsonl`` keeps them;
-#: nothing in ``metrics.json`` depends on them).
-TIMING_KEYS = ("seconds", "replan_seconds")
-
 
 def summarize(records: Sequence[dict], config: StressConfig) -> dict:
     """The paper's table row of a run (package docstring), JSON-ready, without timings.
@@ -73,13 +69,14 @@ def timings(
         batch size, so with several workers more than wall-clock per episode),
         ``seconds_per_replan`` (NaN without replans), ``episodes``, and the arguments given.
     """
-    replans = sum(r["replans"] for r in records)
+    # An episode whose timings a kill lost (``stress/log.py``) counts in neither mean.
+    timed = [r for r in records if isinstance(r.get("seconds"), (int, float))]
+    replans = sum(r["replans"] for r in timed if "replan_seconds" in r)
     out = {
         "episodes": len(records),
-        "seconds_per_episode": sum(r["seconds"] for r in records) / len(records)
-        if records
-        else math.nan,
-        "seconds_per_replan": sum(r["replan_seconds"] for r in records) / replans
+        "seconds_per_episode": sum(r["seconds"] for r in timed) / len(timed) if timed else math.nan,
+        "seconds_per_replan": sum(r["replan_seconds"] for r in timed if "replan_seconds" in r)
+        / replans
         if replans
         else math.nan,
         "workers": workers,
