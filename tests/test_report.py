@@ -19,8 +19,9 @@ from counterscene_env.cli import _parser, main
 from counterscene_env.config import parsed_fields
 from counterscene_env.report import compare_runs, load_run, write_report
 from counterscene_env.report.compare import to_json
+from counterscene_env.report.document import interval
 from counterscene_env.report.ranking import worst_episodes
-from counterscene_env.report.stats import mcnemar_exact
+from counterscene_env.report.stats import group_mean, mcnemar_exact, mean
 from counterscene_env.report.tables import horizon_table
 from counterscene_env.sim import SimConfig
 from counterscene_env.stress import EpisodeLog, StressConfig, run_identity, summarize
@@ -273,6 +274,16 @@ def test_mcnemar_exact():
     assert mcnemar_exact(3, 3) == 1.0
     assert mcnemar_exact(0, 6) == pytest.approx(2 / 64)
     assert mcnemar_exact(1, 9) == mcnemar_exact(9, 1) == pytest.approx(2 * 11 / 1024)
+
+
+def test_a_mean_over_one_episode_has_no_interval_rather_than_a_zero_width_one():
+    one = mean([6.73, float("nan")])
+    assert one.value == 6.73 and one.n == 1 and np.isnan(one.low) and np.isnan(one.high)
+    assert interval(one, "m") == "6.73 (no interval: 1 episode)"
+    two = mean([1.0, 3.0])
+    assert two.low < two.value < two.high and interval(two, "m") == "2 [1, 3]"
+    grouped = group_mean(np.array([[1.0, 2.0], [np.nan, np.nan]]))
+    assert grouped.value == 1.5 and grouped.n == 1 and np.isnan(grouped.low)
 
 
 def test_compare_cli_table_json_and_plots(template, tmp_path, capsys):

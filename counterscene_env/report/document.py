@@ -91,7 +91,10 @@ def fmt(value: float | None, unit: str = "") -> str:
 
 
 def interval(est: Estimate, unit: str = "") -> str:
-    """``value [low, high]`` of an estimate (percentages for rates and fractions)."""
+    """``value [low, high]`` of an estimate (percentages for rates and fractions); a value
+    without an interval (a mean over one episode) says so."""
     if math.isnan(est.value):
         return "n/a"
+    if math.isnan(est.low) or math.isnan(est.high):
+        return f"{fmt(est.value, unit)} (no interval: {est.n} episode{'s' * (est.n != 1)})"
     return f"{fmt(est.value, unit)} [{fmt(est.low, unit)}, {fmt(est.high, unit)}]"

@@ -5,7 +5,8 @@ means over episodes, and paired differences between two runs on the same episode
   (``metrics.wilson_interval``), good at rates near 0 and at small n.
 - A **mean** (ADE, FDE, ORR, the horizon groups) gets a percentile bootstrap interval over
   episodes: :data:`BOOTSTRAP` resamples from a fixed seed, so a report is reproducible. It is
-  somewhat narrow below about 20 episodes.
+  somewhat narrow below about 20 episodes; one episode has no spread to resample, so its
+  mean has no interval (NaN ends, printed as such) rather than a zero-width one.
 - A **paired difference** (run B minus run A over the episodes both ran) gets a paired
   bootstrap interval; for a rate the decision is McNemar's exact test (a binomial test on the
   episodes where the two runs disagree), for a mean whether the interval excludes 0. A
@@ -68,8 +69,10 @@ def rate(flags: Sequence[float]) -> Estimate:
 def mean(values: Sequence[float]) -> Estimate:
     """The mean of per-episode values (NaN left out) with a percentile bootstrap interval."""
     x = _finite(values)
-    if not x.size:
-        return Estimate(math.nan, math.nan, math.nan, 0, MEAN_METHOD)
+    if x.size < 2:  # nothing, or one episode: no interval (module docstring)
+        return Estimate(
+            float(x.mean()) if x.size else math.nan, math.nan, math.nan, int(x.size), MEAN_METHOD
+        )
     boot = x[_resamples(x.size)].mean(1)
     lo, hi = np.percentile(boot, [2.5, 97.5])
     return Estimate(float(x.mean()), float(lo), float(hi), int(x.size), MEAN_METHOD)
@@ -83,8 +86,8 @@ def group_mean(values: np.ndarray) -> Estimate:
     values = np.asarray(values, dtype=np.float64)
     n = int((~np.isnan(values)).any(1).sum())
     value = _group_of(values[None])[0]
-    if not n:
-        return Estimate(math.nan, math.nan, math.nan, 0, MEAN_METHOD)
+    if n < 2:  # nothing, or one episode: no interval (module docstring)
+        return Estimate(float(value) if n else math.nan, math.nan, math.nan, n, MEAN_METHOD)
     boot = _group_of(values[_resamples(len(values))])
     lo, hi = np.nanpercentile(boot, [2.5, 97.5]) if np.isfinite(boot).any() else (np.nan,) * 2
     return Estimate(float(value), float(lo), float(hi), n, MEAN_METHOD)
@@ -177,9 +180,10 @@ def _pairs(a: Sequence[float], b: Sequence[float]) -> tuple[np.ndarray, np.ndarr
 
 
 def _paired_bootstrap(d: np.ndarray) -> tuple[float, float, float]:
-    """Mean of the paired differences ``d`` and its percentile bootstrap interval."""
-    if not d.size:
-        return math.nan, math.nan, math.nan
+    """Mean of the paired differences ``d`` and its percentile bootstrap interval (none for
+    fewer than two pairs, as for :func:`mean`)."""
+    if d.size < 2:
+        return (float(d.mean()) if d.size else math.nan), math.nan, math.nan
     boot = d[_resamples(d.size)].mean(1)
     lo, hi = np.percentile(boot, [2.5, 97.5])
     return float(d.mean()), float(lo), float(hi)
