@@ -276,6 +276,11 @@ def test_episode_timings_are_read_back_and_a_lost_one_is_left_out(tmp_path):
     assert "seconds" not in cut[1] and cut[1]["replans"] == 2
     assert timings(cut)["seconds_per_episode"] == 1.5
     assert timings(cut)["seconds_per_replan"] == 0.5
+    # The next append starts on a line of its own after the cut one, and is read back.
+    resumed = EpisodeLog(tmp_path, identity, resume=True)
+    resumed.append([{"episode": 2, "replans": 1, "seconds": 0.5, "replan_seconds": 0.25}])
+    read = EpisodeLog(tmp_path, identity, resume=True).records
+    assert [r.get("seconds") for r in read] == [1.5, None, 0.5]
     # A run written before the split (timings inside episodes.jsonl) reads the same.
     old = tmp_path / "old"
     old.mkdir()

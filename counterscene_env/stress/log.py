@@ -28,8 +28,9 @@ TIMINGS_FILE = "episode_timings.jsonl"
 class EpisodeLog:
     """A stress run's durable record: ``DIR/episodes.jsonl``, one line per finished episode.
 
-    Each batch's records are appended, flushed and synced to disk as the batch finishes (their
-    timings to ``DIR/episode_timings.jsonl`` first, module docstring), so a killed run (Ctrl-C, a crash, a lost machine) loses only the episodes in flight. With
+    Each batch's records are appended, flushed and synced to disk as the batch finishes
+    (their timings to ``DIR/episode_timings.jsonl`` first, module docstring), so a killed
+    run (Ctrl-C, a crash, a lost machine) loses only the episodes in flight. With
     ``resume``, the run continues after the last recorded episode; a larger ``--episodes``
     extends it. ``DIR/run.json`` holds what the run is (the config but its episode count, and
     the model): a run with anything else is refused, so one directory never mixes two runs.
@@ -170,6 +171,11 @@ def _append_lines(path: Path, rows: Sequence[dict]) -> None:
     """Append one JSON line per row, on disk before this returns. One write call: Ctrl-C
     (raised between Python statements) never splits a batch."""
     text = "".join(json.dumps(metrics.json_safe(row)) + "\n" for row in rows)
+    if path.is_file() and path.stat().st_size:
+        with open(path, "rb") as f:
+            f.seek(-1, os.SEEK_END)
+            if f.read(1) != b"\n":  # a line cut short by a kill: start on a line of our own
+                text = "\n" + text
     with open(path, "a") as f:
         f.write(text)
         f.flush()
