@@ -3,6 +3,7 @@ velocity, and each model's difference from the first, paired by scene with a boo
 (docs/world_model.md, "Parked cars"):
 
     python tools/paired_ade.py scenarionet:path/to/nuscenes_mini_scenarionet runs/a runs/b default
+    python tools/paired_ade.py data/ngsim_heldout default --by 'Peach|US101'   # per road
 
 Every second of each log where 3 s of history and 3 s of future exist, every agent the model
 sees (as ``counterscene evaluate-model --every 1``, one sample per sampling call, the same seed
@@ -12,6 +13,7 @@ for every model). The ratio is the sum of the model's ADE over the sum of consta
 from __future__ import annotations
 
 import argparse
+import re
 
 import numpy as np
 import torch
@@ -51,6 +53,12 @@ def main() -> None:
     ap.add_argument("models", nargs="+", help="model directories ('default': the shipped one)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--bootstrap", type=int, default=2000)
+    ap.add_argument(
+        "--by",
+        metavar="REGEX",
+        help="also give each model's ratio per group of scenes: the first match of REGEX in "
+        "the scene's id (e.g. 'Peach|US101' for NGSIM's roads), with its bootstrap interval",
+    )
     args = ap.parse_args()
     scenes = list(stored_scenes(args.source))
     sums = {m: per_scene(load_model(m).eval(), scenes, args.seed) for m in args.models}
@@ -68,6 +76,27 @@ def main() -> None:
             )
             line += f" [{lo:+.3f}, {hi:+.3f}]"
         print(line)
+        if args.by:
+            for group, rows in groups(scenes, args.by).items():
+                print("  " + group_line(group, s[rows], rng, args.bootstrap))
+
+
+def groups(scenes, pattern: str) -> dict[str, list[int]]:
+    """Scene rows by the first match of ``pattern`` in their id (``"other"``: no match)."""
+    out: dict[str, list[int]] = {}
+    for i, scene in enumerate(scenes):
+        m = re.search(pattern, scene.scenario_id)
+        out.setdefault(m.group(0) if m else "other", []).append(i)
+    return out
+
+
+def group_line(group: str, sums: np.ndarray, rng, resamples: int) -> str:
+    """``group: ratio [interval] (n scenes)`` over ``sums [S, 2]`` (bootstrap over scenes)."""
+    ratio = sums[:, 0].sum() / sums[:, 1].sum()
+    draws = rng.integers(0, len(sums), (resamples, len(sums)))
+    boot = [sums[d, 0].sum() / max(sums[d, 1].sum(), 1e-9) for d in draws]
+    lo, hi = np.percentile(boot, [2.5, 97.5])
+    return f"{group}: {ratio:.3f} [{lo:.3f}, {hi:.3f}] ({len(sums)} scenes)"
 
 
 if __name__ == "__main__":
