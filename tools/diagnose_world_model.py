@@ -15,7 +15,8 @@ and valid 3 s later are scored; for each:
   (no final-step lane keeping), the network with no lane map at all, the model with every
   vehicle stopped now taken out of the window (do parked cars read as queued traffic?), and
   with only those on or beside a lane, or only those off the street (more than
-  ``parked.LOT_CLEARANCE`` m outside every lane strip of the window: lots, driveways) taken
+  ``parked.KERB_OFFSET[1]`` (1.5) m outside every lane strip of the window, farther than any
+  kerbside parked car of the training: lots, driveways) taken
   out, the model with the
   history's past speeds smoothed over 0.5 s ("now" kept: are jumpy real-log speeds what
   misleads it?), the log's own action
@@ -54,7 +55,7 @@ from counterscene_env.world_model.dataset import SceneWindowDataset
 from counterscene_env.world_model.evaluate import constant_velocity, start_steps
 from counterscene_env.world_model.map_guidance import lane_excess
 from counterscene_env.world_model.overlap import new_overlaps
-from counterscene_env.world_model.parked import LOT_CLEARANCE
+from counterscene_env.world_model.parked import KERB_OFFSET
 from counterscene_env.world_model.window import lane_segments
 
 HORIZON = 30  # 3 s at 10 Hz
@@ -148,16 +149,16 @@ def one_sample(model, b, seed: int, **kw) -> torch.Tensor:
     return torch.cat(out)
 
 
-def by_map(model, scenes, batch, state, sel, seed: int) -> dict[str, dict]:
-    """ADE over 0-3 s of the moving agents ``sel``, the model's (one sample) and constant
-    velocity's, summed per map the scenes name (``metadata["map"]``)."""
+def by_map(model, scenes, batch, state, sel, pred) -> dict[str, dict]:
+    """ADE over 0-3 s of the moving agents ``sel``, the model's (``pred [B, K, F, >=2]``, one
+    sample) and constant velocity's, summed per map the scenes name (``metadata["map"]``)."""
     fut, fok = batch["future"][..., :HORIZON, :2], batch["future_valid"][..., :HORIZON]
 
-    def ade(pred):
-        err = (pred[..., :HORIZON, :2] - fut).norm(dim=-1)
+    def ade(track):
+        err = (track[..., :HORIZON, :2] - fut).norm(dim=-1)
         return (err * fok).sum(-1) / fok.sum(-1).clamp(min=1)  # [B, K]
 
-    model_ade = ade(one_sample(model, batch, seed))
+    model_ade = ade(pred)
     cv_ade = ade(cv_track(model, state, state[..., 2]))
     names = np.array([str(s.metadata.get("map", "?")) for s in scenes])
     window_map = names[batch["scene_index"].numpy()]
@@ -169,7 +170,7 @@ def by_map(model, scenes, batch, state, sel, seed: int) -> dict[str, dict]:
     return out
 
 
-def variants(model, batch, state, sel, seed: int) -> dict[str, dict]:
+def variants(model, batch, state, sel, seed: int, pred) -> dict[str, dict]:
     def sample(b, **kw):
         return one_sample(model, b, seed, **kw)
 
@@ -181,7 +182,7 @@ def variants(model, batch, state, sel, seed: int) -> dict[str, dict]:
     outside = lane_excess(
         state[:, :, None, :2], batch["map"], batch["map_valid"], batch["map_widths"]
     )[..., 0]
-    off_street = stopped & (outside > LOT_CLEARANCE)
+    off_street = stopped & (outside > KERB_OFFSET[1])  # beyond the training's kerbside cars
     no_off_street = {**batch, "agent_valid": batch["agent_valid"] & ~off_street}
     no_street_side = {**batch, "agent_valid": batch["agent_valid"] & ~(stopped & ~off_street)}
     smooth = {**batch, "history": smoothed_speeds(batch["history"], batch["history_valid"])}
@@ -189,7 +190,7 @@ def variants(model, batch, state, sel, seed: int) -> dict[str, dict]:
     with torch.no_grad():
         logged = model.rollout(model.normalize(actions), state)
     preds = {
-        "model": sample(batch),
+        "model": pred,
         "network": sample(batch, lane_steering=0),
         "network_no_map": sample(no_map, lane_steering=0),
         "model_without_stopped_cars": sample(no_stopped),
@@ -320,15 +321,16 @@ def main() -> None:
         scenes = [s for s, _ in iter_scenes(Path(path))][: args.scenes]
         batch = windows(scenes, model)
         state, sel = scored(model, batch)
+        pred = one_sample(model, batch, args.seed)  # the model as configured, one sample
         results[name] = {
             "scenes": len(scenes),
             "windows": int(batch["history"].shape[0]),
             "moving_agent_windows": int(sel.sum()),
             "log_speed_now": float(state[..., 3][sel].mean()),
             "log_speed3": float(batch["future"][..., HORIZON - 1, 3][sel].abs().mean()),
-            "variants": variants(model, batch, state, sel, args.seed),
+            "variants": variants(model, batch, state, sel, args.seed, pred),
             "course": course_test(model, batch, state, sel),
-            "by_map": by_map(model, scenes, batch, state, sel, args.seed),
+            "by_map": by_map(model, scenes, batch, state, sel, pred),
             "actions": action_stats(model, batch, sel),
             "lanes": lane_stats(scenes, batch, sel),
         }
