@@ -193,6 +193,12 @@ def test_evaluate_model_json(trained, dataset, capsys):
     assert raw["lane_steering"] == 0 and raw["model"]["ade"] != model["ade"]
     assert main([*argv, "--quiet", "--lane-steering", "-1"]) == 1
     assert "--lane-steering must be >= 0" in capsys.readouterr().err
+    # The hold on parked cars is the model's (the preset's 1.5 m); --hold-parked sets it.
+    assert result["hold_parked_m"] == preset("default").hold_parked == 1.5
+    assert main([*argv, "--samples", "2", "--quiet", "--hold-parked", "0"]) == 0
+    assert json.loads(capsys.readouterr().out)["hold_parked_m"] == 0
+    assert main([*argv, "--quiet", "--hold-parked", "-1"]) == 1
+    assert "--hold-parked must be >= 0 m" in capsys.readouterr().err
     for bad in ("0", "-3"):
         assert main([*argv, "--quiet", "--samples", bad]) == 1
         assert f"--samples must be >= 1, got {bad}" in capsys.readouterr().err

@@ -63,6 +63,13 @@ def add_evaluate_model(sub) -> None:
         help="Adam steps of final-step lane keeping (default: the model's; 0: the network alone)",
     )
     ev.add_argument(
+        "--hold-parked",
+        type=float,
+        metavar="M",
+        help="hold in place every vehicle stopped now more than M m outside every lane strip "
+        "(default: the model's, 1.5 for the shipped one; 0: the network plans them too)",
+    )
+    ev.add_argument(
         "--every",
         type=float,
         metavar="S",
@@ -141,6 +148,10 @@ def _cmd_evaluate_model(args: argparse.Namespace) -> int:
         if args.lane_steering < 0:
             raise ValueError(f"--lane-steering must be >= 0, got {args.lane_steering}")
         model.config = model.config.replace(lane_steering=args.lane_steering)
+    if args.hold_parked is not None:
+        if not args.hold_parked >= 0:
+            raise ValueError(f"--hold-parked must be >= 0 m, got {args.hold_parked}")
+        model.config = model.config.replace(hold_parked=args.hold_parked)
     if args.every is not None and not args.every > 0:
         raise ValueError(f"--every must be > 0 s, got {args.every}")
     if args.bootstrap < 0:

@@ -299,7 +299,15 @@ class Replanner:
         if init is not None:  # cut to the batch's trimmed agent axis
             init = torch.from_numpy(np.ascontiguousarray(init[:, : batch["agent_valid"].shape[1]]))
             warm = dict(init=init, init_steps=c.warm_start_steps)
-        pred = self.model.sample(batch, S, gens, guidance=hook, **self.sample_kwargs, **warm)
+        # Parked cars off the street are held in place (``ModelConfig.hold_parked``), but
+        # never a guided adversary: a car that pulls out of a driveway in the log may be one.
+        hold = self.model.held_agents(batch)
+        for j, adv in enumerate(adv_rows):
+            if adv >= 0:
+                hold[j, adv] = False
+        pred = self.model.sample(
+            batch, S, gens, guidance=hook, **self.sample_kwargs, **warm, held=hold
+        )
         ego_rows = [
             [r for r in (w.row_of(e) for e in eps[o].egos) if r >= 0]
             for w, o in zip(windows, owner, strict=True)

@@ -21,7 +21,12 @@ from counterscene_env.config import (
     check_fields,
     choice_field,
 )
+from counterscene_env.world_model.parked import KERB_OFFSET
 from counterscene_env.world_model.window import WindowConfig
+
+#: The presets' ``hold_parked`` [m]: the farthest the training's parked cars stand outside a
+#: lane strip, so that no stopped car the network was trained to plan is ever held.
+HOLD_PARKED = KERB_OFFSET[1]
 
 
 @dataclass(frozen=True)
@@ -71,6 +76,14 @@ class ModelConfig:
             steer_onto_lanes``): the finished samples' yaw-rate tokens are corrected so that
             every agent that is on a lane now keeps its centre inside a lane strip; 0 disables
             (checkpoints without the key). Measured in docs/world_model.md.
+        hold_parked: a vehicle stopped now (slower than ``metrics.realism.PARKED_SPEED``)
+            whose centre lies more than this outside every lane strip of its window [m] is
+            held in place: the network neither plans it nor sees it (a car parked in a lot or
+            a driveway, off every street the map holds); 0 disables (checkpoints without the
+            key). The presets take 1.5 m, the farthest that the training's parked cars stand
+            outside a lane (``world_model.parked.KERB_OFFSET``): beyond it a stopped car is
+            nothing the network has seen, and it braked the moving traffic near such cars on
+            real streets (docs/world_model.md, "Cars parked off the street").
         yaw_gain: low-speed yaw-rate bound of the rollout, |w| <= yaw_gain * v [rad/m].
         lateral_limit: high-speed yaw-rate bound, |w| <= lateral_limit / v [m/s^2]. The
             reference values are 0.5 and 2 pi (docs/design.md, "Action space and unicycle
@@ -108,6 +121,7 @@ class ModelConfig:
     clip_sample: float = 5.0
     map_guidance: float = 0.0
     lane_steering: int = 0
+    hold_parked: float = 0.0
     yaw_gain: float = 1.0
     lateral_limit: float = 25.0
     dt: float = 0.1
@@ -142,6 +156,7 @@ class ModelConfig:
                 "sampling_steps must be in [1, num_train_timesteps]",
             ),
             (0.0 <= self.graph_dropout < 1.0, "graph_dropout must be in [0, 1)"),
+            (self.hold_parked >= 0.0, "hold_parked must be >= 0 (0 disables it)"),
         ]
         for ok, message in checks:
             if not ok:
@@ -188,7 +203,13 @@ class ModelConfig:
 
 PRESETS: dict[str, ModelConfig] = {
     # CPU default: every number here was measured (docs/world_model.md, `counterscene bench`).
-    "default": ModelConfig(num_lanes=48, lane_anchors="agents", local_lanes=10, lane_steering=20),
+    "default": ModelConfig(
+        num_lanes=48,
+        lane_anchors="agents",
+        local_lanes=10,
+        lane_steering=20,
+        hold_parked=HOLD_PARKED,
+    ),
     # The paper's reference constants (hyper-parameter table of the CounterScene paper).
     "paper": ModelConfig(
         history_stride=1,
@@ -203,6 +224,7 @@ PRESETS: dict[str, ModelConfig] = {
         lane_anchors="agents",
         local_lanes=10,
         lane_steering=20,
+        hold_parked=HOLD_PARKED,
     ),
 }
 

@@ -381,6 +381,7 @@ def _summary(
         "samples": num_samples,
         "horizon_s": model.config.horizon,
         "lane_steering": model.config.lane_steering,
+        "hold_parked_m": model.config.hold_parked,
         "bootstrap_resamples": bootstrap,
         **_figures(est, "all", hz, agents["all"]),
         "speed_bins_m_s": list(SPEED_BIN_EDGES),

@@ -29,7 +29,7 @@ from counterscene_env.dynamics import (
     unicycle_rollout,
     wrap_angle,
 )
-from counterscene_env.world_model import features
+from counterscene_env.world_model import features, hold
 from counterscene_env.world_model.cig import edge_features
 from counterscene_env.world_model.config import ModelConfig
 from counterscene_env.world_model.denoiser import Context, Denoiser
@@ -108,6 +108,16 @@ class WorldModel(nn.Module):
     def agent_mask(batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """``[B, K]``: real agents whose current state is known."""
         return batch["agent_valid"] & batch["history_valid"][..., -1]
+
+    def held_agents(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``[B, K]`` bool: the agents the sampler holds in place, parked off every lane
+        (``ModelConfig.hold_parked``, ``world_model/hold.py``)."""
+        valid = self.agent_mask(batch)
+        if self.config.hold_parked <= 0:
+            return torch.zeros_like(valid)
+        return hold.parked_off_lanes(
+            batch, self.current_state(batch), valid, self.config.hold_parked
+        )
 
     def kinematic_states(
         self, batch: dict[str, torch.Tensor]
@@ -242,6 +252,8 @@ class WorldModel(nn.Module):
         ``yaw`` [rad], ``speed`` [m/s], ``off_lane`` [m], ``overlap`` [m] (detached).
         """
         c = self.config
+        # Agents the sampler holds in place are no part of what the network learns either.
+        batch = hold.without(batch, self.held_agents(batch))
         hist, fut = self.kinematic_states(batch)
         target, tok_ok = self.target_actions(batch, (hist, fut))
         x0 = torch.where(tok_ok[..., None], self.normalize(target), 0.0)
@@ -301,6 +313,7 @@ class WorldModel(nn.Module):
         lane_steering: int | None = None,
         init: torch.Tensor | None = None,
         init_steps: int = 0,
+        held: torch.Tensor | None = None,
     ) -> Prediction:
         """Sample every agent's future, ``num_samples`` per scene, in one batched call.
 
@@ -328,6 +341,10 @@ class WorldModel(nn.Module):
                 detail the new history calls for.
             init_steps: steps run from ``init``; ignored without ``init``, and a full sample
                 when it is not below the sampler's step count.
+            held: ``[B, K]`` bool, the agents to hold in place; default ``held_agents(batch)``
+                (``ModelConfig.hold_parked``; a caller that guides an agent passes it with
+                that agent cleared). A held agent is taken out of the network's view and its
+                plan is ``hold.stop_actions``: it stops over the first token and stays.
         """
         c = self.config
         sampler = sampler or c.sampler
@@ -340,6 +357,9 @@ class WorldModel(nn.Module):
         valid = self.agent_mask(batch)
         B, K = valid.shape
         device = valid.device
+        held = (self.held_agents(batch) if held is None else held.to(torch.bool)) & valid
+        batch = hold.without(batch, held)
+        planned = self.agent_mask(batch)
         with torch.no_grad():
             ctx = self.denoiser.remember(self.context(batch).repeat(num_samples))
         state = self.current_state(batch).repeat_interleave(num_samples, 0)
@@ -378,9 +398,9 @@ class WorldModel(nn.Module):
             x = self.scheduler.step(out, t, x, generator, eta, hook, noise).prev_sample.detach()
         # Padding agents get zero physical actions: a clean, finite "keep going" plan.
         still = self.normalize(torch.zeros(2, device=device))
-        x = torch.where(valid.repeat_interleave(num_samples, 0)[..., None, None], x, still)
+        x = torch.where(planned.repeat_interleave(num_samples, 0)[..., None, None], x, still)
         steer = c.lane_steering if lane_steering is None else lane_steering
-        x = steer_onto_lanes(self, batch, x, steer)
+        x = self._hold(steer_onto_lanes(self, batch, x, steer), held, state)
         with torch.no_grad():
             traj = self.rollout(x, state)
             actions = self.denormalize(x).repeat_interleave(c.action_stride, -2)
@@ -391,6 +411,16 @@ class WorldModel(nn.Module):
             normalized=x.reshape(B, S, *x.shape[1:]),
             valid=valid,
         )
+
+    def _hold(self, x: torch.Tensor, held: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """Samples ``x [B S, K, Ta, 2]`` with the agents ``held [B, K]`` (at ``state [B S, K,
+        4]``) given ``hold.stop_actions``: they stop over the first token and stay."""
+        if not bool(held.any()):
+            return x
+        c = self.config
+        rep = held.repeat_interleave(x.shape[0] // held.shape[0], 0)[..., None, None]
+        stop = hold.stop_actions(state, c.action_tokens, c.action_stride, c.dt)
+        return torch.where(rep, self.normalize(stop), x)
 
     def _start(
         self, noise: torch.Tensor, init: torch.Tensor | None, init_steps: int, num_samples: int
