@@ -300,7 +300,8 @@ class Replanner:
             init = torch.from_numpy(np.ascontiguousarray(init[:, : batch["agent_valid"].shape[1]]))
             warm = dict(init=init, init_steps=c.warm_start_steps)
         # Parked cars off the street are held in place (``ModelConfig.hold_parked``), but
-        # never a guided adversary: a car that pulls out of a driveway in the log may be one.
+        # never the selected adversary (a car that pulls out of a driveway in the log may be
+        # one), guided or not, so that a guided and an unguided row plan the same agents.
         hold = self.model.held_agents(batch)
         for j, adv in enumerate(adv_rows):
             if adv >= 0:
