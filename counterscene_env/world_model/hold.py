@@ -24,9 +24,8 @@ def parked_off_lanes(
     """``[B, K]`` bool: the agents ``valid [B, K]`` slower than ``PARKED_SPEED`` at
     ``state [B, K, 4]`` (x m, y m, course rad, speed m/s) whose centre lies more than
     ``beyond`` m outside every lane strip of a window that has lanes (the batch's ``map``,
-    ``map_valid``, ``map_widths``). All False when ``beyond`` is 0."""
-    if beyond <= 0:
-        return torch.zeros_like(valid)
+    ``map_valid``, ``map_widths``); ``beyond`` > 0 (``WorldModel.held_agents`` skips the
+    call when the hold is off)."""
     stopped = valid & (state[..., 3].abs() < PARKED_SPEED)
     if not bool(stopped.any()):
         return stopped
