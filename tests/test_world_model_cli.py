@@ -170,7 +170,8 @@ def test_evaluate_model_json(trained, dataset, capsys):
     assert result["scenes"] == 3 and result["samples"] == 2 and result["agents"] > 0
     model, cv = result["model"], result["constant_velocity"]
     hz = {"1s", "2s", "3s", "full"}
-    for block, keys in ((model, ("ade", "fde", "min_ade_6")), (cv, ("ade", "fde"))):
+    one_draw = ("ade", "fde", "ade_all_samples", "fde_all_samples", "min_ade_6")
+    for block, keys in ((model, one_draw), (cv, ("ade", "fde"))):
         for key in keys:
             assert set(block[key]) == hz, key
             for h, v in block[key].items():
@@ -181,6 +182,14 @@ def test_evaluate_model_json(trained, dataset, capsys):
     assert cv["ade"]["1s"] <= cv["ade"]["full"]
     for h in hz:
         assert model["min_ade_6"][h] <= model["ade"][h] + 1e-9
+        assert model["min_ade_6"][h] <= model["ade_all_samples"][h] + 1e-9
+    # The mean over the samples is another estimate of one draw's error: with one sample it
+    # is that sample's.
+    assert model["ade_all_samples"] != model["ade"]
+    assert main([*argv, "--samples", "1", "--quiet"]) == 0
+    single = json.loads(capsys.readouterr().out)["model"]
+    assert single["ade_all_samples"] == single["ade"]
+    assert single["fde_all_samples"] == single["fde"]
     # The share of windows whose sample overlaps two boxes only grows with the horizon.
     overlap = result["sample_overlap"]
     assert set(overlap) == hz and all(0.0 <= overlap[h] <= 1.0 for h in hz)
@@ -375,6 +384,14 @@ def test_init_adds_the_agent_centric_map_but_never_drops_it(dataset, tmp_path, c
     for name, tensor in start.state_dict().items():
         assert torch.equal(tensor, new[name]), name
     assert all(not new[f"denoiser.blocks.{i}.local.out.weight"].any() for i in range(1))
+    # How many lanes that map holds sizes no tensor: a fine-tune may widen it.
+    wide = tmp_path / "wide"
+    argv = ["--init", str(fine), "--lr", "0", "--set", "local_lanes=20", "--set", "local_radius=40"]
+    assert _train(dataset, wide, 2, *argv) == 0
+    widened = load_model(wide)
+    assert (widened.config.local_lanes, widened.config.local_radius) == (20, 40.0)
+    for name, tensor in new.items():
+        assert torch.equal(tensor, widened.state_dict()[name]), name
     # The other way round would throw trained weights away: refused.
     capsys.readouterr()
     assert _train(dataset, tmp_path / "back", 2, "--init", str(fine), "--set", "local_lanes=0") == 1

@@ -192,6 +192,7 @@ def _print_evaluation(result: dict) -> None:
     rows = [
         ("model ADE [m]", result["model"]["ade"]),
         ("model FDE [m]", result["model"]["fde"]),
+        ("  mean of samples ADE", result["model"]["ade_all_samples"]),
         (f"model minADE_{result['samples']} [m]", result["model"]["min_ade_6"]),
         ("const. vel. ADE [m]", result["constant_velocity"]["ade"]),
         ("const. vel. FDE [m]", result["constant_velocity"]["fde"]),
@@ -219,9 +220,11 @@ def _print_evaluation(result: dict) -> None:
     still = result["still"]
     if still["agents"]:
         fde3 = still["model"]["fde"].get("3s")
+        all3 = still["model"]["fde_all_samples"].get("3s")
         print(
             f"still agents ({still['agents']}: parked, logged within "
-            f"{fmt(result['still_displacement_m'])} m 3 s later): model FDE at 3 s {fmt(fde3)} m"
+            f"{fmt(result['still_displacement_m'])} m 3 s later): model FDE at 3 s {fmt(fde3)} m "
+            f"(mean of the samples {fmt(all3)} m)"
         )
     lo, hi = (fmt(float(e)) for e in result["speed_bins_m_s"])
     print(f"ADE [m] by speed now (parked < {lo} m/s <= slow < {hi} m/s <= moving):")

@@ -189,7 +189,9 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         # predictions.
         same = start.config.replace(**{k: getattr(model_cfg, k) for k in UNSIZED_FIELDS})
         adds_local = start.config.local_lanes == 0 and model_cfg.local_lanes > 0
-        if adds_local:
+        # How many lanes each agent's own map holds, and how near they must be, size no
+        # tensor either (attention keys), as long as both models have that map.
+        if adds_local or start.config.local_lanes > 0 < model_cfg.local_lanes:
             same = same.replace(
                 local_lanes=model_cfg.local_lanes, local_radius=model_cfg.local_radius
             )

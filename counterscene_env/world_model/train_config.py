@@ -111,6 +111,7 @@ UNSIZED_FIELDS = (
     "eta",
     "map_guidance",
     "lane_steering",
+    "hold_parked",
 )
 
 
