@@ -12,6 +12,7 @@ from counterscene_env.dynamics import unicycle_rollout
 from counterscene_env.world_model.config import preset
 from counterscene_env.world_model.dataset import SceneWindowDataset
 from counterscene_env.world_model.features import local_map
+from counterscene_env.world_model.loss import training_loss
 from counterscene_env.world_model.map_guidance import off_lane_loss
 from counterscene_env.world_model.model import Normalization, WorldModel
 from counterscene_env.world_model.train import action_statistics
@@ -159,7 +160,7 @@ def test_agent_seen_only_now_and_padding_slots(tiny):
     assert pred.valid[0].tolist() == [True, True, True, False]
     assert torch.isfinite(pred.trajectory).all() and torch.isfinite(pred.actions).all()
     # Its features and loss are finite as well.
-    losses = tiny.loss(batch, torch.Generator().manual_seed(0))
+    losses = training_loss(tiny, batch, torch.Generator().manual_seed(0))
     assert all(torch.isfinite(v) for v in losses.values())
 
 
@@ -223,7 +224,7 @@ def test_tiny_model_overfits_one_batch(generated):
         # Same diffusion steps and noise every time: only the weights change the loss.
         model.eval()
         with torch.no_grad():
-            return float(model.loss(batch, torch.Generator().manual_seed(123))["loss"])
+            return float(training_loss(model, batch, torch.Generator().manual_seed(123))["loss"])
 
     before = fixed_noise_loss()
     steps = 200
@@ -231,7 +232,7 @@ def test_tiny_model_overfits_one_batch(generated):
     decay = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: 1 - i / steps)
     model.train()
     for _ in range(steps):
-        loss = model.loss(batch, torch.Generator().manual_seed(123))["loss"]
+        loss = training_loss(model, batch, torch.Generator().manual_seed(123))["loss"]
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -322,7 +323,7 @@ def test_epsilon_prediction_trains_and_samples(generated):
     model.train()
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
     before = [p.detach().clone() for p in model.parameters()]
-    losses = model.loss(batch, torch.Generator().manual_seed(0))
+    losses = training_loss(model, batch, torch.Generator().manual_seed(0))
     assert set(losses) == {"loss", "action", "position", "yaw", "speed", "off_lane", "overlap"}
     assert all(torch.isfinite(v) for v in losses.values())
     opt.zero_grad()
@@ -599,7 +600,10 @@ def test_off_lane_term_counts_only_where_the_log_keeps_to_a_lane(tiny):
     assert float(off_lane_loss(tiny, batch, side, side, ok)) == 0.0
     # In the loss, the term adds its weight times its value (same noise, same draw).
     g = lambda: torch.Generator().manual_seed(3)  # noqa: E731
-    plain, weighted = tiny.loss(batch, g()), tiny.loss(batch, g(), off_lane_weight=2.0)
+    plain, weighted = (
+        training_loss(tiny, batch, g()),
+        training_loss(tiny, batch, g(), off_lane_weight=2.0),
+    )
     assert float(weighted["loss"].detach()) == pytest.approx(
         float(plain["loss"].detach()) + 2.0 * float(weighted["off_lane"]), rel=1e-5
     )

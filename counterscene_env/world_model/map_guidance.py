@@ -122,7 +122,7 @@ def off_lane_loss(
 ) -> torch.Tensor:
     """Mean off-lane distance [m] of ``pred [B, K, F, 2]`` where ``log [B, K, F, 2]`` is on
     a window lane, at the last step of each action token (``ok [B, K, F]``): the training
-    loss's off-lane term (``WorldModel.loss``)."""
+    loss's off-lane term (``loss.training_loss``)."""
     s = model.config.action_stride
     lanes = (batch["map"], batch["map_valid"], batch["map_widths"])
     pred, log, ok = pred[:, :, s - 1 :: s], log[:, :, s - 1 :: s], ok[:, :, s - 1 :: s]

@@ -1,4 +1,5 @@
-"""The world model: the training loss and batched sampling (input features: ``features.py``).
+"""The world model: batched sampling (input features: ``features.py``; the training loss:
+``loss.py``).
 
 A *batch* is a dict of tensors in the layout of
 :class:`counterscene_env.world_model.dataset.SceneWindowDataset` (leading batch axis ``B``): ``history
@@ -27,21 +28,14 @@ from counterscene_env.dynamics import (
     actions_from_states,
     course_angles,
     unicycle_rollout,
-    wrap_angle,
 )
 from counterscene_env.world_model import features, hold
 from counterscene_env.world_model.cig import edge_features
 from counterscene_env.world_model.config import ModelConfig
 from counterscene_env.world_model.denoiser import Context, Denoiser
 from counterscene_env.world_model.lane_steering import steer_onto_lanes
-from counterscene_env.world_model.map_guidance import off_lane_loss
-from counterscene_env.world_model.overlap import overlap_loss
 from counterscene_env.world_model.scheduler import CosineScheduler
 from counterscene_env.world_model.window import WindowConfig
-
-# Trajectory terms of the training loss, added to the action MSE (normalised units): the mean
-# position error [m], heading error [rad] and speed error [m/s] of the rolled-out prediction.
-TRAJECTORY_WEIGHTS = {"position": 0.1, "yaw": 1.0, "speed": 0.1}
 
 #: ``guidance(mean, sigma, t, x0) -> mean``: edits the posterior mean ``[B*S, K, Ta, 2]``
 #: (normalised actions) at one denoising step; see :meth:`CosineScheduler.step`.
@@ -225,80 +219,6 @@ class WorldModel(nn.Module):
         )
 
     # ------------------------------------------------------------------ training
-    def loss(
-        self,
-        batch: dict[str, torch.Tensor],
-        generator: torch.Generator | None = None,
-        off_lane_weight: float = 0.0,
-        overlap_weight: float = 0.0,
-    ) -> dict[str, torch.Tensor]:
-        """Training loss of one batch: action MSE plus rolled-out trajectory errors.
-
-        Args:
-            batch: training windows (with ``future``).
-            generator: diffusion time steps, noise and graph dropout.
-            off_lane_weight: weight of the off-lane term: the mean distance [m] by which the
-                rolled-out prediction lies outside every window lane strip, at the action
-                tokens' steps where the log lies on one (``map_guidance.off_lane_loss``). The
-                position error alone weighs a turn that goes wide onto the verge no more than
-                one that goes wide along the lane; the open-loop off-road rate is mostly such
-                under-turns (docs/world_model.md).
-            overlap_weight: weight of the overlap term: the mean depth [m] by which the
-                rolled-out prediction's boxes run into each other where the log's do not
-                (``overlap.overlap_loss``). Every agent's error is otherwise scored alone, so
-                nothing teaches the joint sample that two cars cannot share a place.
-
-        Returns a dict with ``loss`` (to minimise) and its terms ``action``, ``position`` [m],
-        ``yaw`` [rad], ``speed`` [m/s], ``off_lane`` [m], ``overlap`` [m] (detached).
-        """
-        c = self.config
-        # Agents the sampler holds in place are no part of what the network learns either.
-        batch = hold.without(batch, self.held_agents(batch))
-        hist, fut = self.kinematic_states(batch)
-        target, tok_ok = self.target_actions(batch, (hist, fut))
-        x0 = torch.where(tok_ok[..., None], self.normalize(target), 0.0)
-        B = x0.shape[0]
-        device = x0.device
-        t = torch.randint(0, c.num_train_timesteps, (B,), generator=generator, device=device)
-        noise = torch.randn(x0.shape, generator=generator, device=device)
-        noisy = self.scheduler.add_noise(x0, noise, t)
-        ctx = self.context(batch, c.graph_dropout if self.training else 0.0, generator)
-        out = self.denoiser(noisy, t, ctx)
-
-        if c.prediction == "x0":
-            pred_x0, goal = out, x0
-        else:
-            abar = self.scheduler.alphas_cumprod.to(device)[t].float().reshape(B, 1, 1, 1)
-            pred_x0, goal = (noisy - (1 - abar).sqrt() * out) / abar.sqrt(), noise
-        w = tok_ok[..., None].float()
-        action = ((out - goal) ** 2 * w).sum() / (w.sum() * 2).clamp(min=1)
-
-        traj = self.rollout(pred_x0, hist[..., -1, :])
-        fut_ok = batch["future_valid"] & self.agent_mask(batch)[..., None]
-        n = fut_ok.float().sum().clamp(min=1)
-        pos = ((traj[..., :2] - fut[..., :2]).norm(dim=-1) * fut_ok).sum() / n
-        yaw = (wrap_angle(traj[..., 2] - fut[..., 2]).abs() * fut_ok).sum() / n
-        speed = ((traj[..., 3] - fut[..., 3]).abs() * fut_ok).sum() / n
-        tw = TRAJECTORY_WEIGHTS
-        loss = action + tw["position"] * pos + tw["yaw"] * yaw + tw["speed"] * speed
-        off_lane = torch.zeros((), device=device)
-        if off_lane_weight > 0:
-            off_lane = off_lane_loss(self, batch, traj[..., :2], fut[..., :2], fut_ok)
-            loss = loss + off_lane_weight * off_lane
-        overlap = torch.zeros((), device=device)
-        if overlap_weight > 0:
-            overlap = overlap_loss(traj, fut, batch["extents"], fut_ok)
-            loss = loss + overlap_weight * overlap
-        return {
-            "loss": loss,
-            "action": action.detach(),
-            "position": pos.detach(),
-            "yaw": yaw.detach(),
-            "speed": speed.detach(),
-            "off_lane": off_lane.detach(),
-            "overlap": overlap.detach(),
-        }
-
     # ------------------------------------------------------------------ sampling
     def sample(
         self,

@@ -29,6 +29,7 @@ from torch.utils.data import default_collate
 from counterscene_env.world_model.checkpoint import save_model
 from counterscene_env.world_model.config import preset as get_preset
 from counterscene_env.world_model.dataset import SceneWindowDataset, load_sources
+from counterscene_env.world_model.loss import training_loss
 from counterscene_env.world_model.model import Normalization, WorldModel
 from counterscene_env.world_model.parked import add_parked_cars
 from counterscene_env.world_model.train_config import (
@@ -269,7 +270,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         if cfg.parked_cars > 0:  # a stream of its own, seeded by the step: resumes exactly
             g = torch.Generator().manual_seed(PARKED_STREAM + cfg.seed * 100003 + step)
             batch = add_parked_cars(batch, cfg.parked_cars, g)
-        losses = model.loss(batch, noise, cfg.off_lane_weight, cfg.overlap_weight)
+        losses = training_loss(model, batch, noise, cfg.off_lane_weight, cfg.overlap_weight)
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)

@@ -41,9 +41,9 @@ class TrainConfig:
         device: torch device.
         init: a model directory (or ``"default"``, the shipped one) whose weights and action
             normalisation start the run (fine-tuning); None: a fresh model.
-        off_lane_weight: weight of the loss's off-lane term (``WorldModel.loss``); 0 leaves
+        off_lane_weight: weight of the loss's off-lane term (``loss.training_loss``); 0 leaves
             it out.
-        overlap_weight: weight of the loss's overlap term (``WorldModel.loss``: predicted
+        overlap_weight: weight of the loss's overlap term (``loss.training_loss``: predicted
             boxes running into each other); 0 leaves it out.
         min_future_steps: future frames a window needs inside its log (None: the model's whole
             horizon); fewer admits the ends of short real logs, their missing frames masked.
