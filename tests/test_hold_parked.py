@@ -112,7 +112,7 @@ def test_the_closed_loop_never_holds_its_guided_adversary(monkeypatch):
     seen = []
     sample = model.sample
 
-    def every_agent_parked(batch):
+    def every_agent_parked(batch, beyond=None):
         return model.agent_mask(batch)
 
     def spy(batch, *args, held=None, **kwargs):
@@ -130,3 +130,41 @@ def test_the_closed_loop_never_holds_its_guided_adversary(monkeypatch):
     for valid, held in seen:  # the ego's window: the ego, then the adversary (row 1)
         assert held is not None and held[0, 0] and not held[0, 1]
         assert held[0, 2:].tolist() == valid[0, 2:].tolist()
+
+
+@pytest.mark.parametrize("hold_parked", [None, 0.0, 4.0])
+def test_the_closed_loop_setting_decides_how_far_off_the_lanes_a_car_is_held(
+    monkeypatch, hold_parked
+):
+    """``SimConfig.hold_parked`` (a ``CounterScene-v0`` key and a ``stress`` flag) overrides
+    the model's threshold: None keeps the model's 1.5 m, 0 holds nobody."""
+    from test_sim import crossing_scene
+
+    from counterscene_env.sim import ClosedLoop, SimConfig
+    from counterscene_env.world_model import hold as hold_module
+    from counterscene_env.world_model.checkpoint import load_model
+
+    model = load_model()
+    asked, seen = [], []
+    sample = model.sample
+
+    def everyone_off_the_lanes(batch, state, valid, beyond):
+        asked.append(beyond)
+        return valid
+
+    def spy(batch, *args, held=None, **kwargs):
+        seen.append(held.clone())
+        return sample(batch, *args, held=held, **kwargs)
+
+    monkeypatch.setattr(hold_module, "parked_off_lanes", everyone_off_the_lanes)
+    monkeypatch.setattr(model, "sample", spy)
+    loop = ClosedLoop(model, SimConfig(duration=9.0, num_samples=2, hold_parked=hold_parked))
+    loop.reset([crossing_scene()], [0])
+    for _ in range(6):
+        loop.step(np.zeros((1, 2)))
+    assert seen
+    if hold_parked == 0.0:
+        assert not asked and not any(h.any() for h in seen)
+    else:
+        assert asked and set(asked) == {model.config.hold_parked if hold_parked is None else 4.0}
+        assert all(h[0, 0] for h in seen)  # the ego's window holds everyone but its adversary

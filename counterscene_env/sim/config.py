@@ -73,6 +73,11 @@ class SimConfig:
         lane_steering: Adam steps of the world model's final-step lane keeping (None: the
             model's default; 0: off). 10 keeps as many points on their lanes as the shipped
             model's 20 at half the cost (docs/performance.md).
+        hold_parked: vehicles stopped now more than this far outside every lane strip of
+            their window (cars in lots and driveways) are held in place, out of the world
+            model's view [m] (None: the model's own ``hold_parked``, 1.5 for the shipped one;
+            0: none held; docs/world_model.md, "Cars parked off the street"). The selected
+            adversary is never held.
         warm_start_steps: denoising steps of a warm-started replan: after an episode's first
             replan, each window starts from the previous plan shifted to "now", noised to the
             level of the sampler's last ``warm_start_steps`` steps, and only those are run
@@ -120,6 +125,7 @@ class SimConfig:
     eta: float | None = bounded(None, ge=0)
     map_guidance: float | None = bounded(None, ge=0)
     lane_steering: int | None = bounded(10, ge=0)
+    hold_parked: float | None = bounded(None, ge=0)
     warm_start_steps: int = bounded(2, ge=0)
     warm_first_replan: bool = False
     realism_weight: float = bounded(1.0, ge=0)

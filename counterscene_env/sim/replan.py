@@ -302,7 +302,7 @@ class Replanner:
         # Parked cars off the street are held in place (``ModelConfig.hold_parked``), but
         # never the selected adversary (a car that pulls out of a driveway in the log may be
         # one), guided or not, so that a guided and an unguided row plan the same agents.
-        hold = self.model.held_agents(batch)
+        hold = self.model.held_agents(batch, c.hold_parked)
         for j, adv in enumerate(adv_rows):
             if adv >= 0:
                 hold[j, adv] = False

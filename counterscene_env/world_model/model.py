@@ -103,15 +103,16 @@ class WorldModel(nn.Module):
         """``[B, K]``: real agents whose current state is known."""
         return batch["agent_valid"] & batch["history_valid"][..., -1]
 
-    def held_agents(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        """``[B, K]`` bool: the agents the sampler holds in place, parked off every lane
-        (``ModelConfig.hold_parked``, ``world_model/hold.py``)."""
+    def held_agents(
+        self, batch: dict[str, torch.Tensor], beyond: float | None = None
+    ) -> torch.Tensor:
+        """``[B, K]`` bool: the agents the sampler holds in place, parked more than ``beyond``
+        m off every lane (None: ``ModelConfig.hold_parked``; 0: none; ``world_model/hold.py``)."""
         valid = self.agent_mask(batch)
-        if self.config.hold_parked <= 0:
+        beyond = self.config.hold_parked if beyond is None else beyond
+        if beyond <= 0:
             return torch.zeros_like(valid)
-        return hold.parked_off_lanes(
-            batch, self.current_state(batch), valid, self.config.hold_parked
-        )
+        return hold.parked_off_lanes(batch, self.current_state(batch), valid, beyond)
 
     def kinematic_states(
         self, batch: dict[str, torch.Tensor]
