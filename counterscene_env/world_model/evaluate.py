@@ -335,8 +335,7 @@ def _score_scene(
 def _figures(est: SceneBootstrap, group: str, hz: dict[str, int], agents: int) -> dict[str, Any]:
     """The figures of one group of agents: ``agents``, ``model``, ``constant_velocity`` (each
     with ``ci95``), the model's ADE (first sample and all samples) and min-ADE as ratios to
-    constant velocity's, and
-    ``log_offroad_rate``."""
+    constant velocity's, and ``log_offroad_rate``."""
 
     def block(who: str, keys: dict[str, str]) -> dict[str, Any]:
         out: dict[str, Any] = {}
