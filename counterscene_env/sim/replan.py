@@ -299,7 +299,8 @@ class Replanner:
         if init is not None:  # cut to the batch's trimmed agent axis
             init = torch.from_numpy(np.ascontiguousarray(init[:, : batch["agent_valid"].shape[1]]))
             warm = dict(init=init, init_steps=c.warm_start_steps)
-        # Parked cars off the street are held in place (``ModelConfig.hold_parked``), but
+        # Parked cars off the street are held in place (``SimConfig.hold_parked``, else the
+        # model's own ``ModelConfig.hold_parked``), but
         # never the selected adversary (a car that pulls out of a driveway in the log may be
         # one), guided or not, so that a guided and an unguided row plan the same agents.
         hold = self.model.held_agents(batch, c.hold_parked)
