@@ -3,7 +3,7 @@
 Trains Stable-Baselines3 PPO on ``CounterScene-v0`` (world-model traffic, the causal adversary
 guided with ``--guidance``, default ``full``) on ``--num-envs`` envs batched in one process
 (``counterscene_env.envs.sb3_vec.SB3VecEnv``: every replan is one world-model call for all of
-them), for ``--total-timesteps`` steps or ``--max-minutes`` of training, saves
+them; ``--workers 2`` splits them over two processes), for ``--total-timesteps`` steps or ``--max-minutes`` of training, saves
 ``OUT/model.zip`` and its env sidecar ``OUT/model.env.json`` (the observation and action config,
 so ``counterscene stress --planner sb3:OUT/model.zip`` rebuilds matching spaces), then
 stress-tests the policy on ``--eval-episodes`` held-out episodes (seeds from ``--eval-seed``)
@@ -46,6 +46,8 @@ class Args:
     """policy steps of training, all envs together"""
     num_envs: int = 16
     """envs batched in one vector env (one world-model call per replan for all)"""
+    workers: int = 1
+    """processes the envs are split over (stored scenes: 2 steps 1.2x as fast on 2 cores)"""
     max_minutes: float = 0.0
     """stop training after this many minutes (0: no limit)"""
     seed: int = 0
@@ -126,7 +128,7 @@ def train(args: Args, out: Path) -> Path:
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
     config = env_config(args)
-    venv = VecMonitor(SB3VecEnv(args.num_envs, config=config))
+    venv = VecMonitor(SB3VecEnv(args.num_envs, config=config, workers=args.workers))
     venv.seed(args.seed)
     model = PPO(
         "MlpPolicy",

@@ -8,7 +8,8 @@ Importing the package registers (idempotently; gymnasium ignores entry points):
 - Gymnasium: ``CounterScene-v0`` (any scenario, default ``intersection``) and the variants
   ``CounterScene-{highway,merge,intersection,roundabout}-v0``; reachable as
   ``gym.make("counterscene_env:CounterScene-v0")`` too. ``gymnasium.make_vec(id, num_envs=N)``
-  gives the batched vector env (``counterscene_env.envs.vector``).
+  gives the batched vector env (``counterscene_env.envs.vector``; ``workers=W`` splits it
+  over W processes, ``counterscene_env.envs.sharded``).
 - PettingZoo: ``pettingzoo.make("parallel", "CounterScene-v0", num_egos=2)``.
 """
 
@@ -40,7 +41,7 @@ def _register() -> None:
     import gymnasium
 
     entry = "counterscene_env.envs.single_agent:CounterSceneEnv"
-    vector = "counterscene_env.envs.vector:CounterSceneVectorEnv"
+    vector = "counterscene_env.envs.sharded:vector_env"
     if ENV_ID not in gymnasium.registry:
         gymnasium.register(id=ENV_ID, entry_point=entry, vector_entry_point=vector)
     for scenario in SCENARIO_VARIANTS:

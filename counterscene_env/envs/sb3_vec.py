@@ -6,7 +6,7 @@ is ``infos[i]["terminal_observation"]``, a time-limit end is flagged
 ``infos[i]["TimeLimit.truncated"]``, and infos are a list of one dict per env. This adapter
 runs :class:`~counterscene_env.envs.vector.CounterSceneVectorEnv` in Gymnasium's
 ``SAME_STEP`` autoreset mode and translates; every replan stays one world-model call for all
-envs. Wrap it in SB3's ``VecMonitor`` for episode returns in the training log::
+envs (with ``workers=W``, for all envs of each of W processes: ``envs/sharded.py``). Wrap it in SB3's ``VecMonitor`` for episode returns in the training log::
 
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecMonitor
@@ -25,7 +25,8 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env import VecEnv
 
-from counterscene_env.envs.vector import CounterSceneVectorEnv
+from counterscene_env.envs.batching import unbatch_info
+from counterscene_env.envs.sharded import vector_env
 
 
 class SB3VecEnv(VecEnv):
@@ -35,11 +36,22 @@ class SB3VecEnv(VecEnv):
         num_envs: N (>= 1).
         config: the single env's config keys, for every env (``docs/environment.md``).
         scenario: the default scenario.
+        workers: processes the envs are split over (``envs/sharded.py``; 1: this process).
     """
 
-    def __init__(self, num_envs: int, config: dict | None = None, scenario: str | None = None):
-        self.venv = CounterSceneVectorEnv(
-            num_envs, config=config, scenario=scenario, autoreset_mode=AutoresetMode.SAME_STEP
+    def __init__(
+        self,
+        num_envs: int,
+        config: dict | None = None,
+        scenario: str | None = None,
+        workers: int = 1,
+    ):
+        self.venv = vector_env(
+            num_envs,
+            workers,
+            config=config,
+            scenario=scenario,
+            autoreset_mode=AutoresetMode.SAME_STEP,
         )
         self._actions: np.ndarray | None = None
         super().__init__(
@@ -87,40 +99,22 @@ class SB3VecEnv(VecEnv):
         self.venv.close()
 
     # ------------------------------------------------------------------ SB3's env access
-    def _envs(self, indices: Any) -> list:
-        return [self.venv.envs[i] for i in self._get_indices(indices)]
-
     def get_attr(self, attr_name: str, indices: Any = None) -> list[Any]:
-        return [getattr(env, attr_name) for env in self._envs(indices)]
+        indices = list(self._get_indices(indices))
+        return list(self.venv.call_at(indices, "__getattribute__", (attr_name,)))
 
     def set_attr(self, attr_name: str, value: Any, indices: Any = None) -> None:
-        for env in self._envs(indices):
-            setattr(env, attr_name, value)
+        indices = list(self._get_indices(indices))
+        self.venv.call_at(indices, "__setattr__", (attr_name, value))
 
     def env_method(
         self, method_name: str, *method_args: Any, indices: Any = None, **method_kwargs: Any
     ) -> list[Any]:
-        return [
-            getattr(env, method_name)(*method_args, **method_kwargs) for env in self._envs(indices)
-        ]
+        indices = list(self._get_indices(indices))
+        return list(self.venv.call_at(indices, method_name, method_args, method_kwargs))
 
     def env_is_wrapped(self, wrapper_class: type, indices: Any = None) -> list[bool]:
-        return [False for _ in self._envs(indices)]  # the envs are bare
+        return [False for _ in self._get_indices(indices)]  # the envs are bare
 
     def get_images(self) -> Sequence[np.ndarray | None]:
-        return [env.render() for env in self.venv.envs]
-
-
-def unbatch_info(infos: dict, i: int) -> dict:
-    """Env ``i``'s info dict from Gymnasium's vector info format (``infos[key][i]`` where
-    ``infos["_" + key][i]``), numpy scalars as Python values."""
-    out = {}
-    for key, value in infos.items():
-        if key.startswith("_") or not infos.get(f"_{key}", np.zeros(i + 1, bool))[i]:
-            continue
-        if isinstance(value, dict):
-            out[key] = unbatch_info(value, i)
-        else:
-            item = value[i]
-            out[key] = item.item() if isinstance(item, np.generic) else item
-    return out
+        return list(self.venv.call("render"))

@@ -36,6 +36,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array, iterate
 
+from counterscene_env.envs.batching import add_info, expand_seeds, per_env_values, reset_mask
 from counterscene_env.envs.config import check_episode_inputs
 from counterscene_env.envs.single_agent import CounterSceneEnv
 from counterscene_env.scene.prefetch import one_thread_if
@@ -103,6 +104,9 @@ class CounterSceneVectorEnv(VectorEnv):
         self._truncations = np.zeros(num_envs, np.bool_)
         self._ended = np.zeros(num_envs, np.bool_)  # terminated or truncated, not reset since
         self._started = False
+        #: The index of env 0 in error messages (a worker of a sharded vector env holds envs
+        #: ``first_index ..``, ``envs/sharded.py``).
+        self.first_index = 0
 
     def _share(self, loop: ClosedLoop) -> None:
         """Run every env's episodes in ``loop`` (env ``i`` in slot ``i``)."""
@@ -128,17 +132,8 @@ class CounterSceneVectorEnv(VectorEnv):
             ValueError, TypeError: bad seeds, mask, per-env options, or a config update of a
                 fixed key (``FIXED_KEYS``); nothing changes.
         """
-        seeds = self._seeds(seed)
-        options = dict(options or {})
-        mask = self._mask(options.pop("reset_mask", None))
-        per_env = {k: self._per_env(options.pop(k, None), k) for k in ("scenes", "episode_seeds")}
-        sim = self._check_reset(seeds, mask, per_env, options)
+        seeds, mask, per_env, options, sim = self._plan_reset(seed, options)
         if sim != self.loop.config:
-            if not mask.all():
-                raise ValueError(
-                    "a reset of some envs (reset_mask) cannot change closed-loop settings: "
-                    "the envs share one closed loop"
-                )
             self._share(ClosedLoop(self.loop.model, sim))
         infos: dict = {}
         for i in np.flatnonzero(mask):
@@ -153,6 +148,33 @@ class CounterSceneVectorEnv(VectorEnv):
         self._rewards[mask] = 0.0
         self._started = True
         return self._batch_obs(), infos
+
+    def check_reset(
+        self,
+        *,
+        seed: int | Sequence[int | None] | None = None,
+        options: dict | None = None,
+    ) -> None:
+        """Raise what :meth:`reset` with these arguments would raise; change nothing."""
+        self._plan_reset(seed, options)
+
+    def _plan_reset(self, seed: Any, options: dict | None) -> tuple:
+        """The checked inputs of a reset: ``(seeds, mask, per_env, options, sim)``, the
+        options without the per-env keys, ``sim`` the closed-loop settings after it."""
+        seeds = expand_seeds(seed, self.num_envs)
+        options = dict(options or {})
+        mask = reset_mask(options.pop("reset_mask", None), self.num_envs, self._started)
+        per_env = {
+            k: per_env_values(options.pop(k, None), k, self.num_envs)
+            for k in ("scenes", "episode_seeds")
+        }
+        sim = self._check_reset(seeds, mask, per_env, options)
+        if sim != self.loop.config and not mask.all():
+            raise ValueError(
+                "a reset of some envs (reset_mask) cannot change closed-loop settings: "
+                "the envs share one closed loop"
+            )
+        return seeds, mask, per_env, options, sim
 
     def _check_reset(
         self, seeds: list, mask: np.ndarray, per_env: dict[str, list], options: dict
@@ -173,42 +195,11 @@ class CounterSceneVectorEnv(VectorEnv):
         sim = self.envs[0].check_config(update)
         egos = {**self.config, **update}["controlled_vehicles"]
         for i in np.flatnonzero(mask):
-            names = (f"seed[{i}]", f"options['scenes'][{i}]", f"options['episode_seeds'][{i}]")
+            k = i + self.first_index
+            names = (f"seed[{k}]", f"options['scenes'][{k}]", f"options['episode_seeds'][{k}]")
             scene, episode_seed = per_env["scenes"][i], per_env["episode_seeds"][i]
             check_episode_inputs(seeds[i], scene, episode_seed, egos, names)
         return sim
-
-    def _seeds(self, seed: int | Sequence[int | None] | None) -> list[int | None]:
-        if seed is None:
-            return [None] * self.num_envs
-        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
-            return [int(seed) + i for i in range(self.num_envs)]
-        if isinstance(seed, Sequence) and not isinstance(seed, str):
-            if len(seed) != self.num_envs:
-                raise ValueError(f"seed needs one entry per env ({self.num_envs}), got {seed!r}")
-            return list(seed)
-        raise TypeError(f"seed must be None, an int or a list of {self.num_envs}, got {seed!r}")
-
-    def _mask(self, mask: Any) -> np.ndarray:
-        if mask is None:
-            return np.ones(self.num_envs, np.bool_)
-        if not isinstance(mask, np.ndarray) or mask.dtype != np.bool_:
-            raise TypeError(f"options['reset_mask'] must be a numpy bool array, got {mask!r}")
-        if mask.shape != (self.num_envs,) or not mask.any():
-            raise ValueError(
-                f"options['reset_mask'] must have shape ({self.num_envs},) and a True entry, "
-                f"got {mask!r}"
-            )
-        if not self._started and not mask.all():
-            raise ValueError("the first reset resets every env (no reset_mask)")
-        return mask
-
-    def _per_env(self, values: Any, key: str) -> list:
-        if values is None:
-            return [None] * self.num_envs
-        if not isinstance(values, Sequence) or len(values) != self.num_envs:
-            raise ValueError(f"options[{key!r}] must be a list of {self.num_envs} (None: default)")
-        return list(values)
 
     # ------------------------------------------------------------------ step
     def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict]:
@@ -220,17 +211,7 @@ class CounterSceneVectorEnv(VectorEnv):
             RuntimeError: before ``reset``, or (``DISABLED``) an ended env was not reset.
             ValueError: a bad action (any env's): nothing changes.
         """
-        if not self._started:
-            raise RuntimeError("call reset() before step()")
-        actions = list(iterate(self.action_space, actions))
-        if len(actions) != self.num_envs:
-            raise ValueError(f"step needs {self.num_envs} actions, got {len(actions)}")
-        resetting = self._ended.copy()  # NEXT_STEP: their autoreset; SAME_STEP: none
-        if self.autoreset_mode is AutoresetMode.DISABLED and resetting.any():
-            raise RuntimeError(
-                f"envs {np.flatnonzero(resetting).tolist()} ended: reset them with "
-                "reset(options={'reset_mask': mask}) before stepping (autoreset disabled)"
-            )
+        actions, resetting = self._check_actions(actions)
         stepping = [i for i in range(self.num_envs) if not resetting[i]]
         stepped = self.step_envs(stepping, [actions[i] for i in stepping])
         results = dict(zip(stepping, stepped, strict=True))
@@ -258,6 +239,29 @@ class CounterSceneVectorEnv(VectorEnv):
             self._truncations.copy(),
             infos,
         )
+
+    def check_step(self, actions: Any) -> None:
+        """Raise what :meth:`step` with these actions would raise; change nothing."""
+        actions, resetting = self._check_actions(actions)
+        for i in np.flatnonzero(~resetting):
+            self.envs[i].check_step(actions[i])
+
+    def _check_actions(self, actions: Any) -> tuple[list, np.ndarray]:
+        """The actions, one per env, and the envs due an autoreset (their action is ignored);
+        raises before ``reset`` and, autoreset disabled, for an ended env."""
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        actions = list(iterate(self.action_space, actions))
+        if len(actions) != self.num_envs:
+            raise ValueError(f"step needs {self.num_envs} actions, got {len(actions)}")
+        resetting = self._ended.copy()  # NEXT_STEP: their autoreset; SAME_STEP: none
+        if self.autoreset_mode is AutoresetMode.DISABLED and resetting.any():
+            ended = (np.flatnonzero(resetting) + self.first_index).tolist()
+            raise RuntimeError(
+                f"envs {ended} ended: reset them with "
+                "reset(options={'reset_mask': mask}) before stepping (autoreset disabled)"
+            )
+        return actions, resetting
 
     def step_envs(self, indices: Sequence[int], actions: Sequence[Any]) -> list[tuple]:
         """Advance only the envs ``indices`` by one policy step, each with its action (the
@@ -297,6 +301,34 @@ class CounterSceneVectorEnv(VectorEnv):
         return concatenate(self.single_observation_space, self._obs, out)
 
     # ------------------------------------------------------------------ the rest
+    def call(self, name: str, *args: Any, **kwargs: Any) -> tuple:
+        """Every env's ``name(*args, **kwargs)`` (or its attribute ``name``), as Gymnasium's
+        ``SyncVectorEnv.call``."""
+        return self.call_at(range(self.num_envs), name, args, kwargs)
+
+    def call_at(
+        self, indices: Sequence[int], name: str, args: tuple = (), kwargs: dict | None = None
+    ) -> tuple:
+        """:meth:`call` for the envs ``indices`` only (SB3's ``env_method``), in their order."""
+        out = []
+        for i in indices:
+            attr = getattr(self.envs[i], name)
+            out.append(attr(*args, **(kwargs or {})) if callable(attr) else attr)
+        return tuple(out)
+
+    def get_attr(self, name: str) -> tuple:
+        """Every env's attribute ``name``."""
+        return tuple(getattr(env, name) for env in self.envs)
+
+    def set_attr(self, name: str, values: Any) -> None:
+        """Set attribute ``name`` of every env: one value for all, or a list of one per env."""
+        if not isinstance(values, (list, tuple)):
+            values = [values] * self.num_envs
+        if len(values) != self.num_envs:
+            raise ValueError(f"set_attr needs {self.num_envs} values, got {len(values)}")
+        for env, value in zip(self.envs, values, strict=True):
+            setattr(env, name, value)
+
     def render(self) -> tuple | None:
         """One ``[H, W, 3]`` uint8 frame per env (``render_mode="rgb_array"``)."""
         if self.render_mode is None:
@@ -308,53 +340,5 @@ class CounterSceneVectorEnv(VectorEnv):
             env.close()
 
     def _add_info(self, vector_infos: dict, env_info: dict, env_num: int) -> dict:
-        """Gymnasium's vector info format (``VectorEnv._add_info``), where a key's values may
-        differ in type between envs (a ``tier`` of 1 in one, None in another; an int and a
-        float): the array widens to float or object instead of refusing or truncating."""
-        for key, value in env_info.items():
-            if isinstance(value, dict):
-                vector_infos[key] = self._add_info(vector_infos.get(key, {}), value, env_num)
-            else:
-                array = vector_infos.get(key)
-                if array is None:
-                    array = _info_array(value, self.num_envs)
-                array = _widened(array, value, vector_infos.get(f"_{key}"))
-                array[env_num] = value
-                vector_infos[key] = array
-            mask = vector_infos.get(f"_{key}", np.zeros(self.num_envs, np.bool_))
-            mask[env_num] = True
-            vector_infos[f"_{key}"] = mask
-        return vector_infos
-
-
-def _info_array(value: Any, n: int) -> np.ndarray:
-    """An empty info array for ``n`` envs of ``value``'s kind (as Gymnasium makes them)."""
-    if type(value) in (int, float, bool) or isinstance(value, np.number):
-        return np.zeros(n, dtype=type(value))
-    if isinstance(value, np.ndarray):
-        return np.zeros((n, *value.shape), dtype=value.dtype)
-    return np.full(n, None, dtype=object)
-
-
-def _widened(array: np.ndarray, value: Any, mask: np.ndarray | None) -> np.ndarray:
-    """``array``, widened if it cannot hold ``value``: int or bool to float for a float,
-    anything to object for a value of another kind (envs not yet reported stay None)."""
-    if array.dtype == object:
-        return array
-    if isinstance(value, (bool, np.bool_)):
-        fits = array.dtype == np.bool_
-    elif isinstance(value, (int, np.integer)):
-        fits = array.dtype.kind in "iuf"
-    elif isinstance(value, (float, np.floating)):
-        if array.dtype.kind in "iub" and array.ndim == 1:
-            return array.astype(np.float64)
-        fits = array.dtype.kind == "f"
-    else:
-        fits = isinstance(value, np.ndarray) and value.shape == array.shape[1:]
-    if fits:
-        return array
-    widened = np.full(len(array), None, dtype=object)
-    reported = np.zeros(len(array), np.bool_) if mask is None else mask
-    for i in np.flatnonzero(reported):
-        widened[i] = array[i].item() if array.ndim == 1 else array[i]
-    return widened
+        """:func:`add_info` for this env's ``num_envs``."""
+        return add_info(vector_infos, env_info, env_num, self.num_envs)
