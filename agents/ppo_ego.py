@@ -3,8 +3,8 @@
 Trains Stable-Baselines3 PPO on ``CounterScene-v0`` (world-model traffic, the causal adversary
 guided with ``--guidance``, default ``full``) on ``--num-envs`` envs batched in one process
 (``counterscene_env.envs.sb3_vec.SB3VecEnv``: every replan is one world-model call for all of
-them; ``--workers 2`` splits them over two processes), for ``--total-timesteps`` steps or ``--max-minutes`` of training, saves
-``OUT/model.zip`` and its env sidecar ``OUT/model.env.json`` (the observation and action config,
+them; ``--workers 2`` splits them over two processes), for ``--total-timesteps`` steps or
+``--max-minutes`` of training, saves ``OUT/model.zip`` and its env sidecar ``OUT/model.env.json`` (the observation and action config,
 so ``counterscene stress --planner sb3:OUT/model.zip`` rebuilds matching spaces), then
 stress-tests the policy on ``--eval-episodes`` held-out episodes (seeds from ``--eval-seed``)
 with ``--guidance none`` and ``full``, next to highway-env's IDM planner on the same episodes,

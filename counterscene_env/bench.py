@@ -21,7 +21,8 @@ In order, on the same machine state:
    (one world-model call per replan for all N envs, ``envs/vector.py``), random actions,
    autoresets included: aggregate env steps/s over all N envs, after the first reset (timed
    apart); once with the default config (every reset records a fresh highway-env scene) and
-   once on a stored set of generated scenes (what a training run reads: a reset loads one).
+   once on a stored set of generated scenes (what a training run reads: a reset loads one),
+   there also with the envs split over ``STORED_WORKERS`` processes (``workers=2``).
 6. **Memory**: peak resident set size of the process [MB] (``getrusage``).
 
 The model's own sampling call (``world_model/bench.py``, the previous ``bench``) is reported
@@ -39,6 +40,8 @@ import numpy as np
 
 #: Scenes of the stored scene set the vector env is also timed on.
 STORED_SCENES = 16
+#: Processes the vector env on stored scenes is also split over (``envs/sharded.py``).
+STORED_WORKERS = 2
 #: highway-env's anchor env and the frequencies it runs at [Hz].
 ANCHOR_ENV = "intersection-v2"
 ANCHOR_FREQUENCY = 10
@@ -143,15 +146,16 @@ def bench_stress(episodes: int, model_dir: str = "default", seed: int = 100000) 
 
 
 def bench_vector_env(
-    num_envs: int, steps: int, seed: int = 0, scenario: str | None = None
+    num_envs: int, steps: int, seed: int = 0, scenario: str | None = None, workers: int = 1
 ) -> dict[str, Any]:
     """Aggregate env steps/s of the batched vector env of ``num_envs`` envs over ``steps``
-    vector steps (item 5); ``scenario``: a stored scene set instead of fresh recordings."""
-    from counterscene_env.envs.vector import CounterSceneVectorEnv
+    vector steps (item 5); ``scenario``: a stored scene set instead of fresh recordings;
+    ``workers``: processes the envs are split over (``envs/sharded.py``)."""
+    from counterscene_env.envs.sharded import vector_env
 
-    # What gymnasium.make_vec("CounterScene-v0", num_envs=N, config=...) makes.
-    venv = CounterSceneVectorEnv(
-        num_envs, config=None if scenario is None else {"scenario": scenario}
+    # What gymnasium.make_vec("CounterScene-v0", num_envs=N, workers=W, config=...) makes.
+    venv = vector_env(
+        num_envs, workers, config=None if scenario is None else {"scenario": scenario}
     )
     venv.action_space.seed(seed)
     start = time.perf_counter()
@@ -165,6 +169,7 @@ def bench_vector_env(
     venv.close()
     return {
         "num_envs": num_envs,
+        "workers": workers,
         "vector_steps": steps,
         "episode_ends": ends,
         "first_reset_s": reset_s,
@@ -188,7 +193,12 @@ def _stored_vector_runs(sizes: tuple[int, ...], steps: int, seed: int) -> dict[s
         generate_dataset(tmp, "intersection", scenes, seed=seed, progress=False)
         generate_s = time.perf_counter() - start
         runs = {str(n): bench_vector_env(n, steps, seed, scenario=tmp) for n in sizes}
-    return {"scenes": scenes, "generate_s": generate_s, "runs": runs}
+        sharded = {
+            str(n): bench_vector_env(n, steps, seed, scenario=tmp, workers=STORED_WORKERS)
+            for n in sizes
+            if n >= STORED_WORKERS
+        }
+    return {"scenes": scenes, "generate_s": generate_s, "runs": runs, "workers_runs": sharded}
 
 
 def peak_rss_mb() -> float:
@@ -266,6 +276,9 @@ def run_bench(
         },
         "vector_env_stored_scenes_steps_per_s": {
             n: v["steps_per_s"] for n, v in stored.get("runs", {}).items()
+        },
+        "vector_env_stored_scenes_workers_steps_per_s": {
+            n: v["steps_per_s"] for n, v in stored.get("workers_runs", {}).items()
         },
         "flops_per_replan": flops["warm"],
         "flops_per_cold_replan": flops["cold"],

@@ -443,6 +443,7 @@ def test_full_bench_json_has_every_figure(capsys):
     r = json.loads(capsys.readouterr().out)
     assert set(r["vector_env_steps_per_s"]) == set(r["vector_env_stored_scenes_steps_per_s"])
     assert r["vector_env_steps_per_s"]["2"] > 0
+    assert r["vector_env_stored_scenes_workers_steps_per_s"]["2"] > 0  # split over 2 processes
     assert r["highway_env_steps_per_s"] > 0 and r["env_steps_per_s"] > 0
     # The anchor is timed before and after ours, and the figure is their mean.
     runs = r["runs"]["anchor"]["runs_steps_per_s"]

@@ -215,7 +215,7 @@ def _full_bench(args: argparse.Namespace) -> int:
     """``counterscene bench`` without ``--model-only``: ``counterscene_env/bench.py``."""
     import torch
 
-    from counterscene_env.bench import run_bench
+    from counterscene_env.bench import STORED_WORKERS, run_bench
 
     for flag in ("steps", "episodes", "runs", "vector_steps"):
         if getattr(args, flag) < 1:
@@ -269,6 +269,7 @@ def _full_bench(args: argparse.Namespace) -> int:
     for label, runs in [
         ("fresh scenes", r["runs"]["vector"]),
         ("stored scenes", stored.get("runs", {})),
+        (f"stored scenes, {STORED_WORKERS} workers", stored.get("workers_runs", {})),
     ]:
         for n, v in runs.items():
             print(
