@@ -98,8 +98,12 @@ class ShardedVectorEnv(VectorEnv):
         try:
             for shard in self.shards:
                 parent, child = ctx.Pipe()
+                # Daemonic: a worker ends with its parent even if close() was never called
+                # (it then records fresh scenes itself, as in SB3's SubprocVecEnv).
                 process = ctx.Process(
-                    target=_serve, args=(child, shard.stop - shard.start, shard.start, kwargs)
+                    target=_serve,
+                    args=(child, shard.stop - shard.start, shard.start, kwargs),
+                    daemon=True,
                 )
                 process.start()
                 child.close()
@@ -175,7 +179,7 @@ class ShardedVectorEnv(VectorEnv):
         every = range(len(self.shards))
         for name in ("check_step", "step"):
             for w, shard in enumerate(self.shards):
-                self._send(w, name, np.stack(actions[shard]))
+                self._send(w, name, self._batch_actions(actions[shard]))
             results = self._gather(every)
         rewards, terminations, truncations = (
             np.zeros(self.num_envs, t) for t in (float, bool, bool)
@@ -186,6 +190,10 @@ class ShardedVectorEnv(VectorEnv):
             rewards[shard], terminations[shard], truncations[shard] = reward, terminated, truncated
             self._unpack(w, obs, shard_infos, infos)
         return self._batch_obs(), rewards, terminations, truncations, infos
+
+    def _batch_actions(self, actions: list) -> Any:
+        out = create_empty_array(self.single_action_space, len(actions))
+        return concatenate(self.single_action_space, actions, out)
 
     def _unpack(
         self, w: int, obs: Any, shard_infos: dict, infos: dict, mask: np.ndarray | None = None
@@ -282,6 +290,12 @@ class ShardedVectorEnv(VectorEnv):
 
     def close_extras(self, **kwargs: Any) -> None:
         self._stop()
+
+    def __del__(self) -> None:
+        # As Gymnasium's AsyncVectorEnv: the workers go with the env (getattr: __init__ may
+        # have failed before setting anything).
+        if getattr(self, "_pipes", None) and not self.closed:
+            self.close()
 
     def _stop(self) -> None:
         for pipe in self._pipes:
