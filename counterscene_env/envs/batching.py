@@ -9,6 +9,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from gymnasium.vector import AutoresetMode
 
 
 def _info_array(value: Any, n: int) -> np.ndarray:
@@ -116,3 +117,26 @@ def unbatch_info(infos: dict, i: int) -> dict:
             item = value[i]
             out[key] = item.item() if isinstance(item, np.generic) else item
     return out
+
+
+def check_count(value: Any, name: str, minimum: int) -> int:
+    """``value`` if it is an int of at least ``minimum`` (``num_envs``, ``workers``), else a
+    ``ValueError`` naming it."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
+    return value
+
+
+def check_vector_modes(
+    render_mode: str | None, autoreset_mode: AutoresetMode | str, render_modes: Sequence[str]
+) -> AutoresetMode:
+    """Refuse a render mode outside ``render_modes`` (or None); the autoreset mode parsed."""
+    if render_mode not in (None, *render_modes):
+        raise ValueError(
+            f"render_mode must be None or one of {list(render_modes)}, got {render_mode!r}"
+        )
+    try:
+        return AutoresetMode(autoreset_mode)
+    except ValueError:
+        modes = [m.value for m in AutoresetMode]
+        raise ValueError(f"autoreset_mode must be one of {modes}, got {autoreset_mode!r}") from None

@@ -31,6 +31,8 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array,
 
 from counterscene_env.envs.batching import (
     add_info,
+    check_count,
+    check_vector_modes,
     expand_seeds,
     per_env_values,
     reset_mask,
@@ -47,9 +49,7 @@ def vector_env(num_envs: int = 1, workers: int = 1, **kwargs: Any) -> VectorEnv:
     vector_kwargs={"workers": W})``: one :class:`CounterSceneVectorEnv` for ``workers=1``
     (the default), else a :class:`ShardedVectorEnv`. ``kwargs``: the vector env's
     (``config``, ``render_mode``, ``scenario``, ``autoreset_mode``)."""
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be an int >= 1, got {workers!r}")
-    if workers == 1:
+    if check_count(workers, "workers", 1) == 1:
         return CounterSceneVectorEnv(num_envs, **kwargs)
     return ShardedVectorEnv(num_envs, workers, **kwargs)
 
@@ -75,10 +75,10 @@ class ShardedVectorEnv(VectorEnv):
         scenario: str | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ) -> None:
-        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
-            raise ValueError(f"num_envs must be an int >= 1, got {num_envs!r}")
-        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 2:
-            raise ValueError(f"workers must be an int >= 2, got {workers!r}")
+        check_count(num_envs, "num_envs", 1)
+        check_count(workers, "workers", 2)
+        # Refused here, before any process starts (each worker's env checks them again).
+        check_vector_modes(render_mode, autoreset_mode, self.metadata["render_modes"])
         if workers > num_envs:
             raise ValueError(f"workers ({workers}) cannot exceed num_envs ({num_envs})")
         sizes = [num_envs // workers + (w < num_envs % workers) for w in range(workers)]

@@ -36,7 +36,14 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array, iterate
 
-from counterscene_env.envs.batching import add_info, expand_seeds, per_env_values, reset_mask
+from counterscene_env.envs.batching import (
+    add_info,
+    check_count,
+    check_vector_modes,
+    expand_seeds,
+    per_env_values,
+    reset_mask,
+)
 from counterscene_env.envs.config import check_episode_inputs
 from counterscene_env.envs.single_agent import CounterSceneEnv
 from counterscene_env.scene.prefetch import one_thread_if
@@ -73,17 +80,8 @@ class CounterSceneVectorEnv(VectorEnv):
         scenario: str | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ) -> None:
-        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
-            raise ValueError(f"num_envs must be an int >= 1, got {num_envs!r}")
-        if render_mode not in (None, *self.metadata["render_modes"]):
-            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        try:
-            mode = AutoresetMode(autoreset_mode)
-        except ValueError:
-            modes = [m.value for m in AutoresetMode]
-            raise ValueError(
-                f"autoreset_mode must be one of {modes}, got {autoreset_mode!r}"
-            ) from None
+        check_count(num_envs, "num_envs", 1)
+        mode = check_vector_modes(render_mode, autoreset_mode, self.metadata["render_modes"])
         self.envs = [
             CounterSceneEnv(config=config, render_mode=render_mode, scenario=scenario)
             for _ in range(num_envs)
