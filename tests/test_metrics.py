@@ -326,3 +326,12 @@ def test_horizons_an_episode_never_reached_have_no_value_in_the_tables():
     assert per_second_table([short, long])["10"]["CR"].n == 1
     assert horizon_table([short, long])["8-10s"]["CR"].value == 1.0
     assert metrics.horizon_values(short, "3") and metrics.horizon_values(short, "4") == {}
+
+
+@pytest.mark.parametrize("n", [1, 7, 27, 50, 400])
+def test_wilson_interval_of_no_and_every_event_ends_exactly_at_0_and_1(n):
+    """A table prints "0 [0, 12.5]" for 0 of 27, not a rounding residue as its lower end."""
+    assert metrics.wilson_interval(0, n)[0] == 0.0
+    assert metrics.wilson_interval(n, n)[1] == 1.0
+    lo, hi = metrics.wilson_interval(1, n)
+    assert 0.0 < lo < 1 / n <= hi <= 1.0
