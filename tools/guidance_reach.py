@@ -16,7 +16,7 @@ reports:
   off-lane terms), over the adversary's action coordinates: the share where they agree, and
   the mean magnitude of each gradient.
 
-The figures of docs/closed_loop.md ("Why the guidance did not bite harder").
+The figures of docs/history/closed_loop.md ("Why the guidance did not bite harder").
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Two or more world models on the same windows: one-sample ADE over 0-3 s against constant
 velocity, and each model's difference from the first, paired by scene with a bootstrap interval
-(docs/world_model.md, "Parked cars"):
+(docs/history/world_model.md, "Parked cars"):
 
     python tools/paired_ade.py scenarionet:path/to/nuscenes_mini_scenarionet runs/a runs/b default
     python tools/paired_ade.py data/ngsim_heldout default --by 'Peach|US101'   # per road

@@ -1,5 +1,5 @@
 """Bias or spread? ADE over 0-3 s of one sample, of the mean of S samples and of the best of S,
-against constant velocity (docs/world_model.md, "Real driving").
+against constant velocity (docs/history/world_model.md, "Real driving").
 
 If the model's samples were centred on the truth and only spread too wide, the mean of the
 samples would beat constant velocity while one sample did not; if the mean loses too, the

@@ -95,7 +95,8 @@ STRICT_MAX_DISTANCE = 15.0
 # No arrival-gap gate beyond tier 1's 5 s: a 1.5 s gate for crossing conflicts stood here
 # until 26 Nov 2026. With the guidance's arrival-time compression active at every replan
 # (its progress measured in denoising steps, the paper's main text) the crossings it let
-# through are hit as often as the ones it kept (docs/closed_loop.md).
+# through are hit as often as the ones it kept (docs/history/closed_loop.md, "What changed on
+# 26 Nov 2026").
 #: Mean speed (m/s) over its valid steps that a candidate must exceed: guidance acts on the
 #: adversary's actions, and a parked car's "encounter" is only the ego driving past it.
 STRICT_MIN_SPEED = 1.0

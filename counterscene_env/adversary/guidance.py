@@ -25,7 +25,7 @@ moves a sample further than the noise of that step would (the public code does; 
 At the last step, which adds no noise, the paper's *final-step guidance* (its implementation
 table: Adam, lr 0.3, one step) moves the finished sample by one unclipped step of
 ``final_step_size``. The clipped steps alone barely move the plan: the denoiser redraws what
-the early, noisy steps changed, and the late steps' sigma_t is small (docs/closed_loop.md,
+the early, noisy steps changed, and the late steps' sigma_t is small (docs/history/closed_loop.md,
 "Why the guidance did not bite harder").
 
 Shapes: N = scenes x samples, K window agents, Ta action tokens, F future steps.
@@ -76,8 +76,8 @@ class GuidanceConfig:
             1 step): at the last denoising step, which adds no noise and whose mean is the
             finished sample, one sign-like step of this size, not clipped (sigma is 0
             there); normalised action units. 0: none, the guidance ends at the last noisy
-            step (our reference before 25 Nov 2026; docs/closed_loop.md, "Why the guidance
-            did not bite harder").
+            step (our reference before 25 Nov 2026; docs/history/closed_loop.md, "Why the
+            guidance did not bite harder").
         evaluate_on: where the loss gradient is taken: the posterior ``"mean"`` (ours) or
             the predicted clean actions ``"x0"``; the step goes to the mean either way.
     """

@@ -104,14 +104,14 @@ def passes_first(conflict: Conflict) -> bool:
     the one that arrives after the ego, leaving it the time to clear (its temporal guidance
     compresses exactly that margin). A candidate that passes first was not holding back for
     the ego; the ego held back for it. The paper's score ``v_rel / (gap + 0.5)`` does not
-    tell the two apart (docs/closed_loop.md, "What changed on 26 Nov 2026").
+    tell the two apart (docs/history/closed_loop.md, "What changed on 26 Nov 2026").
     """
     return conflict.type == INTERSECTION and conflict.adversary_step < conflict.ego_step
 
 
 #: Acceleration [m/s^2] up to which an adversary counts as able to reach its conflict point by
 #: the ego's arrival (:func:`reachable`): a passenger car at full throttle (0-100 km/h in
-#: about 7 s). A physical bound, not a value fitted to the runs (docs/closed_loop.md,
+#: about 7 s). A physical bound, not a value fitted to the runs (docs/history/closed_loop.md,
 #: "Reachable conflicts first").
 MAX_REACH_ACCELERATION = 4.0
 

@@ -57,8 +57,8 @@ class SimConfig:
             step of lr 0.3 on the finished sample at the last denoising step, unclipped;
             adversary/guidance.py). False: the guidance ends at the last noisy step, where
             its steps are clipped to that step's noise and barely move the adversary (our
-            reference before 25 Nov 2026; docs/closed_loop.md, "Why the guidance did not
-            bite harder").
+            reference before 25 Nov 2026; docs/history/closed_loop.md, "Why the guidance did
+            not bite harder").
         guidance_progress: what the guidance's progress p, which sets its stage multiplier
             and its arrival-time compression, measures: denoising (the paper's main text:
             every replan compresses the arrival gap by its last steps) or rollout (closed-loop

@@ -1,8 +1,8 @@
 """Road keeping: traffic about to leave the road is kept on the nearest lane going its way.
 
 The world model sometimes under-turns: in a curve its plan runs straight on, over the verge
-(``docs/world_model.md``, "Where the off-road points come from"). A driver whose car drifts
-toward the edge steers back; this module is that reflex, applied by the
+(``docs/world_model.md``, "Training": the off-road points are mostly such under-turns). A
+driver whose car drifts toward the edge steers back; this module is that reflex, applied by the
 closed loop (``sim/motion.py``) at every step to every agent but the egos:
 
 - only a step that would take a centre from the drivable area to outside it is changed;

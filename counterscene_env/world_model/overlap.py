@@ -1,5 +1,5 @@
 """Overlap: how deep agents' boxes run into each other, differentiably (the training loss's
-overlap term, ``loss.training_loss``; docs/world_model.md, "The network's own collisions").
+overlap term, ``loss.training_loss``; docs/history/world_model.md, "The network's own collisions").
 
 Two oriented boxes overlap exactly when their projections overlap on each of the four axes
 of the separating-axis theorem (each box's heading and its normal). The depth used here is
