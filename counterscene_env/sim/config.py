@@ -71,8 +71,11 @@ class SimConfig:
         map_guidance: step size of the world model's map guidance on every agent (None: the
             model's default).
         lane_steering: Adam steps of the world model's final-step lane keeping (None: the
-            model's default; 0: off). 10 keeps as many points on their lanes as the shipped
-            model's 20 at half the cost (docs/performance.md).
+            model's default; 0: off). 10, half the shipped model's 20: open loop on 200
+            held-out generated scenes, 0.48 % of moving vehicles' predicted steps off the
+            road against 0.32 % (intervals overlapping) at the same ADE; in the closed loop
+            road keeping (``road_keeping``) takes what still leaves the road
+            (docs/world_model.md, "Sampling").
         hold_parked: vehicles stopped now more than this far outside every lane strip of
             their window (cars in lots and driveways) are held in place, out of the world
             model's view [m] (None: the model's own ``hold_parked``, 1.5 for the shipped one;
