@@ -6,8 +6,8 @@ and lane keeping's small tensor operations, highway-env's observations) runs on 
 ``workers=2`` the N envs are split into two contiguous shards, each a
 ``CounterSceneVectorEnv`` in its own process with one torch thread, stepped side by side:
 on stored scenes 16 envs step 1.16x as fast as in one process at a 10 Hz policy and 1.25x at
-2 Hz (docs/performance.md, "Vector env"). With fresh highway-env scenes the recordings already keep the second core
-busy, and two workers gain nothing.
+2 Hz (docs/performance.md, "Vector env"). With fresh highway-env scenes the recordings
+already keep the second core busy, and two workers gain nothing.
 
 Env ``i`` is env ``i - first`` of the shard that holds it, and every env plays exactly the
 episode of a single env with the same seed and actions, so the episodes do not depend on

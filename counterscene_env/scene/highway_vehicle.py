@@ -4,9 +4,9 @@ highway-env's IDM/MOBIL vehicle with two changes, neither of which alters what i
 
 - its speed never goes below 0 (the stock class lets a car that brakes to a stop roll
   backwards, at up to -40 m/s); this one is a behaviour fix and is why the class exists;
-- two of its per-frame searches are made cheaper with the same results (docs/history/performance.md,
-  item 4 of "What changed in the second fast-replans session"; the lane search alone was 39 % of recording a
-  scene):
+- two of its per-frame searches are made cheaper with the same results
+  (docs/history/performance.md, item 4 of "What changed in the second fast-replans
+  session"; the lane search alone was 39 % of recording a scene):
 
   1. **The closest lane.** After every integration step highway-env computes
      ``distance_with_heading`` to every lane of the network (``RoadNetwork.

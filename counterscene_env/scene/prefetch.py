@@ -268,8 +268,8 @@ def one_thread_if(busy: bool) -> Iterator[None]:
     Replans run torch's intra-op threads, two on a 2-core machine; a recording holds a core.
     Both at once, each thread waits for the other at every small operation: on 2 cores, 41
     env steps/s with two torch threads and a recording ahead, 58 with one
-    (docs/history/performance.md, the fourth fast-replans session). The results do not depend on the thread count
-    (``tests/test_prefetch.py``)."""
+    (docs/history/performance.md, the fourth fast-replans session). The results do not
+    depend on the thread count (``tests/test_prefetch.py``)."""
     import torch
 
     if not busy or torch.get_num_threads() == 1:

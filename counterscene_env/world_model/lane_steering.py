@@ -6,7 +6,8 @@ docs/world_model.md).
 The correction is a small optimisation per agent (``iterations`` Adam steps on the yaw-rate
 tokens). Its cost and gradient are written out in closed form over numpy arrays: a few
 thousand numbers per replan, where torch's per-operation overhead and its autograd engine
-cost more than the arithmetic (docs/history/performance.md, "What changed in the fifth fast-replans session").
+cost more than the arithmetic (docs/history/performance.md, "What changed in the fifth
+fast-replans session").
 """
 
 from __future__ import annotations
