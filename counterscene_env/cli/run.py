@@ -36,7 +36,8 @@ def add_stress(sub) -> None:
     st.add_argument(
         "--scenario",
         required=True,
-        help="highway, merge, intersection, roundabout, or scenarionet:DIR",
+        help="highway, merge, intersection, roundabout, scenarionet:DIR, commonroad:DIR, a "
+        "dataset directory, or several of these separated by commas",
     )
     st.add_argument("--episodes", type=int, default=50, help="episodes (default 50)")
     add_seed_flag(st, 100000, "seed of episode 0 (default 100000)")

@@ -1,4 +1,5 @@
-"""Motion: how every agent moves into the next step (docs/design.md, "Who moves how").
+"""Motion: how every agent moves into the next step (docs/closed_loop.md, "One episode",
+**Who moves how**).
 
 An agent exists at a step when the log says so, with one exception: an agent that would
 enter (appear in the log) where another agent's box already is waits outside the scene until

@@ -273,7 +273,7 @@ def schedule_panel(ax) -> None:
     ax.plot(p, [stage_multiplier(q) for q in p], color="k", label="m(p), stage multiplier")
     gap = [compressed_arrivals(0.0, 1.0, q)[1] for q in p]
     ax.plot(p, gap, color="tab:green", label="target gap / mined gap")
-    ax.set_xlabel("closed-loop progress p")
+    ax.set_xlabel("progress p over the denoising steps, 1 - t/K")
     ax.legend(loc="upper left")
     ax.set_title("schedules of the guidance")
     ax.grid(alpha=0.3)
