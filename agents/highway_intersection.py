@@ -6,8 +6,9 @@ A single-file recipe (CleanRL style). It
    default observation and action configuration (Kinematics, 15 vehicles x 7 features;
    DiscreteMetaAction, longitudinal only: SLOWER / IDLE / FASTER; policy frequency 1 Hz).
    DQN is the algorithm highway-env's documentation uses for its discrete-action tasks; it
-   reuses every transition from a replay buffer, and since the env itself (~20 steps/s on one
-   core) and not the network is the bottleneck, it learns more per wall-clock second than PPO;
+   reuses every transition from a replay buffer, and since the env itself and not the network is
+   the bottleneck (15,000 steps of training took 1,031 s on one core, docs/environment.md), it
+   learns more per wall-clock second than PPO;
 2. saves ``OUT/model.zip`` and the sidecar ``OUT/model.env.json`` holding
    ``{"observation": ..., "action": ..., "policy_frequency": ...}`` copied verbatim from the
    training env's config, so that another tool can rebuild matching spaces elsewhere;

@@ -10,7 +10,7 @@ before and after a change::
     python tools/regression.py record runs/after         # on the new code
     python tools/regression.py compare runs/before runs/after
 
-``record`` runs (about 6 minutes on 2 cores):
+``record`` runs (several minutes on 2 cores):
 
 - ``counterscene stress --json --out`` for 16 episodes each of intersection (IDM ego,
   guidance ``full``), merge (IDM, ``none``) and roundabout (log replay, ``full``);

@@ -98,7 +98,7 @@ def _evaluation_scenes(args: argparse.Namespace) -> list:
         from counterscene_env.scene.highway import generate
 
         # The first --scenes safe seeds from --seed, as `counterscene generate` picks them
-        # (about 0.5 s each: recording highway-env traffic, hence the bar).
+        # (about 0.7 s each at the intersection: recording highway-env traffic, hence the bar).
         scenes, seed = [], args.seed
         n = args.scenes or DEFAULT_EVAL_SCENES
         with tqdm(total=n, desc="scenes", unit="scene", disable=args.quiet) as bar:

@@ -3,11 +3,12 @@
 Why this module exists: the project's rule is to use highway-env, not re-implement it. This is
 a deliberate, measured exception. highway-env's ``KinematicObservation.observe`` builds a pandas
 DataFrame per call (one ``to_dict`` record per vehicle, concatenated, normalised and reindexed
-column by column): 10-17 % of a ``CounterScene-v0`` step in profiles, about 3.5 ms a call with
-pandas 3.1 against about 0.1 ms here. Here the same rows are built in one float64 array, with
-the same arithmetic in the same order, so the result is identical, not approximately equal
-(``tests/test_kinematics_obs.py`` checks it bit for bit against highway-env's own method, in
-every scenario, for many option combinations).
+column by column): 10-17 % of a ``CounterScene-v0`` step in the profiles of the second
+fast-replans session, 3.5 ms a call against 0.09 ms here (docs/history/performance.md, item 5
+of "What changed in the second fast-replans session"). Here the same rows are built in one
+float64 array, with the same arithmetic in the same order, so the result is identical, not
+approximately equal (``tests/test_kinematics_obs.py`` checks it bit for bit against
+highway-env's own method, in every scenario, for many option combinations).
 
 What is still highway-env's: the choice and order of the observed objects
 (``Road.close_objects_to``), the default ``features_range`` (``normalize_obs``), every vehicle

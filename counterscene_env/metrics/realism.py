@@ -13,7 +13,7 @@ from counterscene_env.scene.core import Scene
 #: An agent is parked if its speed stays below this at every valid step of the window, m/s.
 PARKED_SPEED = 0.5
 #: Speeds for the parked / moving split are read from positions over this window, s: the
-#: logged velocity of a short real track is noise (Waymo: 1-6 m/s for boxes that move 0.1 m).
+#: logged velocity of a short real track is noise (docs/scenes.md, "Real maps").
 SPEED_WINDOW = 1.0
 
 

@@ -1,9 +1,9 @@
 """Recording the next episodes' scenes in a background process while this episode runs.
 
 A generated road's episode starts by recording 13 s of highway-env traffic (the scene's
-factual log): Python that holds one core for 0.2-0.4 s, as long as a whole episode of random
-actions (docs/performance.md). A scene is a function of its road and seed alone
-(``scene.highway.generate``), so it can be recorded anywhere and ahead of time:
+factual log): Python that holds one core for about 0.7 s per intersection scene, rejected
+seeds included (docs/performance.md, "Where it stands"). A scene is a function of its road
+and seed alone (``scene.highway.generate``), so it can be recorded anywhere and ahead of time:
 
 - :class:`Prefetch` records the scene an env's next reset will draw (and the one after); that
   reset takes it if the draw matches, or records the scene itself if it does not (an env

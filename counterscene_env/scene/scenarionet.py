@@ -11,8 +11,8 @@ Time base
 The step is read from ``metadata.ts`` (the timestamps of the frames) where it has one entry per
 frame, else from ``metadata.sample_rate`` (seconds per frame), and the tracks are put on the
 exact 0.1 s grid by ``scene/timebase.py`` (a step within 1 % of 0.1 s or an integer fraction
-of it: ScenarioNet's Waymo converter writes float32 timestamps with steps of 0.09998 to
-0.10006 s).
+of it: ScenarioNet's Waymo converter writes float32 timestamps with steps of 0.09987 to
+0.10013 s).
 
 Tracks
 ------

@@ -21,8 +21,8 @@ is listed in ``metadata["repairs"]`` (track id -> what was done):
 - a velocity of exactly (0, 0) at the last valid step of a piece of track that is still
   moving (at least half the previous step's displacement, after a step with a velocity of
   1 m/s or more): the previous step's velocity. ScenarioNet's nuScenes converter writes
-  (0, 0) at the last step of every track (all 141 moving ones in nuScenes mini: a stop from
-  10 m/s in one frame), which would read as a hard brake.
+  (0, 0) at the last step of every track (287 tracks filled in nuScenes mini, docs/scenes.md:
+  a stop from 10 m/s in one frame), which would read as a hard brake.
 
 A track that cannot be repaired (no state dict, a missing or misshapen field, a length other
 than the ego's, no valid step left) is dropped, with the reason in

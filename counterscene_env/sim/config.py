@@ -31,9 +31,11 @@ class SimConfig:
         duration: closed-loop length after "now" [s]; capped by the log's length.
         replan_every: steps between world-model replans (5 = 0.5 s).
         num_samples: samples per replan; the one with the lowest guidance loss plus
-            realism cost is kept (paper protocol: 16). 2 is as good as 4 on 100 quality
-            episodes, at about 60 % of the time, but weakened the guidance without its
-            final step on the 200-episode paper tables (docs/performance.md).
+            realism cost is kept (paper protocol: 16). 2 samples with 2 warm steps were as
+            good as 4 with 3 on the 100 quality episodes at about 60 % of the time
+            (docs/history/performance.md, the third fast-replans session); with the final
+            guidance step, no difference outside the noise on the 200-episode paper tables
+            (docs/performance.md, "Two samples and two warm steps").
         selector: causal (the paper's conflict mining) or a baseline: random, distance
             (nearest), ttc (smallest time to collision).
         selection_source: log (mined once on the factual future) or model (mined at every

@@ -143,9 +143,9 @@ class Replanner:
         guided). Agents farther than ``cover_radius`` from every window centre get windows of
         their own, centred on the uncovered agent nearest the ego, up to ``max_windows``: the
         model sees the lanes and neighbours around each agent it plans, not only around the
-        ego. The default is one window (``max_windows=1``): the shipped model, trained on
-        ego-centred windows, drives worse in windows centred on other agents (measured,
-        docs/closed_loop.md). Agents left uncovered continue as IDM lane followers.
+        ego. The default is one window (``max_windows=1``): extra windows centred on other agents
+        cost a model call each and were not measured to help with the shipped model. Agents
+        left uncovered continue as IDM lane followers.
         """
         c, t, wc = self.config, ep.t, self.window_config
         e = sim.ego_index

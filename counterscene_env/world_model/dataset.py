@@ -14,7 +14,7 @@ vehicles would otherwise only ever be seen from far away, without the lanes arou
 ``min_future_steps`` defaults to the window's ``future_steps`` (every window has its whole
 future); a smaller value admits windows near the end of short real logs, whose missing future
 frames are invalid and masked out of the loss (``future_valid``). NGSIM recordings run 7 s at
-the median: with full 5.2 s futures only about 15 of 84 give a window at all.
+the median: with full 5.2 s futures only 15 of 84 give a window at all (docs/scenes.md).
 """
 
 from __future__ import annotations

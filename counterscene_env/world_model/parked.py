@@ -4,7 +4,9 @@ Why (docs/world_model.md, "Why the first models lost to constant velocity on rea
 generated traffic and the NGSIM recordings have almost no parked car, so every stopped vehicle
 the model ever saw was queued traffic, which the cars behind it brake for, and which moves
 off again. On nuScenes half the vehicles are parked at the kerb: the shipped model brakes the
-moving cars near them and starts 5 % of those off every lane where the log starts 1 %.
+moving cars near them, and release 4 (the shipped model then) started 5.3 % of those off every
+lane where the log starts 1.2 % (26 Nov 2026, fourth sitting; docs/history/world_model.md,
+"Real driving (releases 4 and 5)").
 
 A share of the training windows gets 1 to :data:`MAX_CARS` parked cars in free agent slots:
 a car-sized box beside a lane of the window (its centre :data:`KERB_OFFSET` m outside the lane
