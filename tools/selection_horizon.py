@@ -13,12 +13,12 @@ ratio to the best one:
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
 from counterscene_env.report import paper_tables as pt
+from counterscene_env.report.rundir import load_run
 
 ROWS = ("counterscene", "ttc", "distance", "random")
 
@@ -31,16 +31,16 @@ def main() -> None:
     rows = [r for r in ROWS if (args.road / r / "episodes.jsonl").exists()]
     if "counterscene" not in rows or len(rows) < 2:
         raise SystemExit(f"{args.road}: needs the counterscene row and a baseline row")
-    records = {
-        r: [json.loads(line) for line in open(args.road / r / "episodes.jsonl")] for r in rows
-    }
+    # load_run skips a last line cut short by a running or killed run, as every reader does.
+    records = {r: load_run(args.road / r).records for r in rows}
     n = min(len(v) for v in records.values())  # the rows pair by episode order
     band = tuple(args.seconds)
     values = {}
     for r in rows:
         cr = np.nanmean(pt.per_episode(records[r][:n], "CR_adv", band), axis=1)
         ade = np.nanmean(pt.per_episode(records[r][:n], "ADE", band), axis=1)
-        whole = np.array([float(x.get("cr_ego_adversary") or 0.0) for x in records[r][:n]])
+        # No adversary (null, read back as NaN): no collision with it.
+        whole = np.nan_to_num([float(x.get("cr_ego_adversary", np.nan)) for x in records[r][:n]])
         values[r] = (cr, ade, whole)
     ref_cr, ref_ade, _ = values["counterscene"]
     print(f"{args.road}: {n} episodes per row, seconds {band}")

@@ -84,6 +84,23 @@ def per_env_values(values: Any, key: str, n: int) -> list:
     return list(values)
 
 
+def attr_values(values: Any, n: int) -> list:
+    """``set_attr``'s values: one value for all ``n`` envs, or a list or tuple of one per env."""
+    if not isinstance(values, (list, tuple)):
+        return [values] * n
+    if len(values) != n:
+        raise ValueError(f"set_attr needs {n} values, got {len(values)}")
+    return list(values)
+
+
+def env_indices(indices: Sequence[int], n: int) -> list[int]:
+    """``call_at``'s env indices, each checked to lie in ``[0, n)``."""
+    indices = [int(i) for i in indices]
+    if any(not 0 <= i < n for i in indices):
+        raise ValueError(f"env indices must be in [0, {n}), got {indices}")
+    return indices
+
+
 def add_info(vector_infos: dict, env_info: dict, env_num: int, num_envs: int) -> dict:
     """Gymnasium's vector info format (``VectorEnv._add_info``), where a key's values may
     differ in type between envs (a ``tier`` of 1 in one, None in another; an int and a

@@ -31,8 +31,10 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array,
 
 from counterscene_env.envs.batching import (
     add_info,
+    attr_values,
     check_count,
     check_vector_modes,
+    env_indices,
     expand_seeds,
     per_env_values,
     reset_mask,
@@ -225,20 +227,16 @@ class ShardedVectorEnv(VectorEnv):
         self, indices: Sequence[int], name: str, args: tuple = (), kwargs: dict | None = None
     ) -> tuple:
         """:meth:`call` for the envs ``indices`` only, in their order."""
-        indices = [int(i) for i in indices]
-        if any(not 0 <= i < self.num_envs for i in indices):
-            raise ValueError(f"env indices must be in [0, {self.num_envs}), got {indices}")
-        asked = []
+        indices = env_indices(indices, self.num_envs)
+        asked = {}  # shard -> the global indices it is asked for
         for w, shard in enumerate(self.shards):
-            local = [i - shard.start for i in indices if shard.start <= i < shard.stop]
-            if local:
-                self._send(w, "call_at", (local, name, args, kwargs))
-                asked.append(w)
+            mine = [i for i in indices if shard.start <= i < shard.stop]
+            if mine:
+                self._send(w, "call_at", ([i - shard.start for i in mine], name, args, kwargs))
+                asked[w] = mine
         values = {}
-        for w, part in zip(asked, self._gather(asked), strict=True):
-            start = self.shards[w].start
-            local = [i - start for i in indices if start <= i < self.shards[w].stop]
-            values.update({start + j: v for j, v in zip(local, part, strict=True)})
+        for mine, part in zip(asked.values(), self._gather(list(asked)), strict=True):
+            values.update(zip(mine, part, strict=True))
         return tuple(values[i] for i in indices)
 
     def get_attr(self, name: str) -> tuple:
@@ -249,12 +247,9 @@ class ShardedVectorEnv(VectorEnv):
 
     def set_attr(self, name: str, values: Any) -> None:
         """Set attribute ``name`` of every env: one value for all, or a list of one per env."""
-        if not isinstance(values, (list, tuple)):
-            values = [values] * self.num_envs
-        if len(values) != self.num_envs:
-            raise ValueError(f"set_attr needs {self.num_envs} values, got {len(values)}")
+        values = attr_values(values, self.num_envs)
         for w, shard in enumerate(self.shards):
-            self._send(w, "set_attr", (name, list(values[shard])))
+            self._send(w, "set_attr", (name, values[shard]))
         self._gather(range(len(self.shards)))
 
     def render(self) -> tuple | None:

@@ -38,8 +38,10 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array,
 
 from counterscene_env.envs.batching import (
     add_info,
+    attr_values,
     check_count,
     check_vector_modes,
+    env_indices,
     expand_seeds,
     per_env_values,
     reset_mask,
@@ -309,7 +311,7 @@ class CounterSceneVectorEnv(VectorEnv):
     ) -> tuple:
         """:meth:`call` for the envs ``indices`` only (SB3's ``env_method``), in their order."""
         out = []
-        for i in indices:
+        for i in env_indices(indices, self.num_envs):
             attr = getattr(self.envs[i], name)
             out.append(attr(*args, **(kwargs or {})) if callable(attr) else attr)
         return tuple(out)
@@ -320,11 +322,7 @@ class CounterSceneVectorEnv(VectorEnv):
 
     def set_attr(self, name: str, values: Any) -> None:
         """Set attribute ``name`` of every env: one value for all, or a list of one per env."""
-        if not isinstance(values, (list, tuple)):
-            values = [values] * self.num_envs
-        if len(values) != self.num_envs:
-            raise ValueError(f"set_attr needs {self.num_envs} values, got {len(values)}")
-        for env, value in zip(self.envs, values, strict=True):
+        for env, value in zip(self.envs, attr_values(values, self.num_envs), strict=True):
             setattr(env, name, value)
 
     def render(self) -> tuple | None:
