@@ -64,3 +64,28 @@ def test_errors_are_one_clear_line(tmp_path):
     bad.write_bytes(b"not a pickle at all")
     out = _run("inspect", str(bad))
     assert out.returncode == 1 and bad.name in out.stderr and "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (["stress", "--scenario", "merge", "--seed", "-5"], ["--seed", ">= 0", "-5"]),
+        (["generate", "--scenario", "merge", "--seed", "-1", "--out", "X"], ["--seed", ">= 0"]),
+        (["bench-env", "--steps", "0"], ["--steps", ">= 1"]),
+        (["bench-env", "--threads", "0"], ["--threads", ">= 1"]),
+        (["bench", "--samples", "0"], ["--samples", ">= 1"]),
+        (["stress", "--scenario", "merge", "--videos", "2"], ["--videos needs --out"]),
+        (["train", "--data", "X", "--out", "Y", "--steps", "0"], ["steps must be >= 1"]),
+        (["train", "--data", "X", "--out", "Y", "--lr", "-1"], ["lr must be >= 0"]),
+    ],
+)
+def test_bad_flags_are_refused_in_one_line_before_any_work(tmp_path, args, words):
+    """Each refusal names its flag and comes before anything runs or is written."""
+    args = [str(tmp_path / a) if a in ("X", "Y") else a for a in args]
+    (tmp_path / "X").mkdir()
+    out = _run(*args)
+    assert out.returncode != 0 and "Traceback" not in out.stderr, out.stderr
+    assert out.stderr.strip().count("\n") == 0 or "usage:" in out.stderr
+    for word in words:
+        assert word in out.stderr, (word, out.stderr)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["X"]  # nothing written

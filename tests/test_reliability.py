@@ -89,6 +89,36 @@ BAD_CONFIGS = [
     ({"policy_frequency": 3}, ValueError, ["policy_frequency", "3"]),
     ({"screen_width": 100}, ValueError, ["screen_width", "100"]),
     ({"memory_limit_gb": -1.0}, ValueError, ["memory_limit_gb", "-1.0"]),
+    # Settings checked against the model or each other at make, not at the first step.
+    ({"sampling_steps": 1000}, ValueError, ["sampling_steps", "<= 100", "1000"]),
+    ({"eta": 5.0}, ValueError, ["eta", "<= 1"]),
+    ({"warm_first_replan": True, "warm_start_steps": 0}, ValueError, ["warm_start_steps"]),
+    # What lies inside highway-env's observation and action configs.
+    (
+        {"observation": {**OBS, "features_range": {"x": "abc"}}},
+        ValueError,
+        ["observation.features_range.x", "'abc'"],
+    ),
+    (
+        {"observation": {**OBS, "features_range": {"x": [100, -100]}}},
+        ValueError,
+        ["features_range.x", "low < high"],
+    ),
+    (
+        {"action": {"type": "DiscreteMetaAction", "target_speeds": []}},
+        ValueError,
+        ["action.target_speeds", "[]"],
+    ),
+    (
+        {"action": {"type": "ContinuousAction", "steering_range": "x"}},
+        ValueError,
+        ["action.steering_range", "'x'"],
+    ),
+    (
+        {"action": {"type": "ContinuousAction", "acceleration_range": [5, -5]}},
+        ValueError,
+        ["action.acceleration_range", "low < high"],
+    ),
 ]
 
 
@@ -168,6 +198,35 @@ def test_a_bad_scene_option_changes_nothing(env):
         with pytest.raises(kind):
             env.reset(options=options)
         assert snapshot(env) == before
+
+
+def test_numpy_integer_seeds_are_seeds(env):
+    """``np.int64`` seeds (what ``rng.integers`` gives) run the episode an ``int`` runs."""
+    env.reset(seed=np.int64(5))
+    a = env.step(np.full(2, 0.3, np.float32))[0]
+    env.reset(seed=5)
+    assert np.array_equal(env.step(np.full(2, 0.3, np.float32))[0], a)
+
+
+def test_unknown_reset_options_are_named_in_a_warning(env):
+    with pytest.warns(UserWarning, match=r"unknown options \['confg'\].*'config'"):
+        env.reset(seed=1, options={"confg": {"duration": 3.0}})
+    with pytest.raises(TypeError, match="options must be a dict"):
+        env.reset(options=[1])
+
+
+def test_render_fps_is_the_policy_frequency_from_construction(shard):
+    """Gymnasium's ``RecordVideo`` reads ``render_fps`` when it wraps the env, before any
+    reset: one frame per policy step must be played at the policy frequency."""
+    config = {"scenario": shard, **SHORT, "policy_frequency": 2}
+    env = gym.make("CounterScene-v0", config=config)
+    assert env.metadata["render_fps"] == 2
+    env.unwrapped.configure({"policy_frequency": 5})
+    assert env.unwrapped.metadata["render_fps"] == 5
+    vec = gym.make_vec("CounterScene-v0", num_envs=2, config=config)
+    par = counterscene_env.parallel_env(num_egos=2, config=config)
+    assert vec.metadata["render_fps"] == par.metadata["render_fps"] == 2
+    assert CounterSceneEnv.metadata["render_fps"] == 10  # the class default is untouched
 
 
 def test_a_failure_inside_a_step_asks_for_a_reset(env, monkeypatch):

@@ -454,8 +454,9 @@ def test_full_bench_json_has_every_figure(capsys):
     assert r["replan_ms"]["count"] >= 1 and r["replan_ms"]["p95"] >= r["replan_ms"]["median"] > 0
     assert r["flops_per_replan"] > 0 and 0 < r["peak_fraction"] < 1
     assert r["stress_s_per_episode"] > 0 and r["peak_rss_mb"] > 100
-    assert main(["bench", "--steps", "0"]) == 1  # refused, named
-    assert "--steps" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as refused:  # refused by the parser, named
+        main(["bench", "--steps", "0"])
+    assert refused.value.code == 2 and "--steps" in capsys.readouterr().err
     assert main(["bench", "--vector-envs", "4,x"]) == 1
     assert "--vector-envs" in capsys.readouterr().err
 

@@ -26,9 +26,25 @@ def add_quiet_flag(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def int_at_least(low: int):
+    """An ``argparse`` type: an int ``>= low`` (the parser names the flag in its error)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an int, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be >= {low}, got {value}")
+        return value
+
+    parse.__name__ = "int"  # argparse's "invalid int value" wording for non-numbers
+    return parse
+
+
 def add_seed_flag(p: argparse.ArgumentParser, default: int, help: str) -> None:
-    """Add ``--seed N`` (an int) with the given default and help text."""
-    p.add_argument("--seed", type=int, default=default, help=help)
+    """Add ``--seed N`` (an int >= 0: seeds are numpy's) with the given default and help."""
+    p.add_argument("--seed", type=int_at_least(0), default=default, help=help)
 
 
 def parse_overrides(items: list[str]) -> dict:

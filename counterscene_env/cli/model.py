@@ -11,6 +11,7 @@ from counterscene_env.cli.common import (
     add_model_flag,
     add_quiet_flag,
     add_seed_flag,
+    int_at_least,
     json_safe,
     load_model,
     parse_overrides,
@@ -157,11 +158,21 @@ def add_bench(sub) -> None:
     add_model_flag(be)
     be.add_argument("--preset", help="time an untrained model of this preset (model only)")
     be.add_argument("--model-only", action="store_true", help="only the model's sampling call")
-    be.add_argument("--runs", type=int, default=50, help="timed sampling calls (default 50)")
-    be.add_argument("--samples", type=int, default=1, help="samples per call (default 1)")
-    be.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
-    be.add_argument("--steps", type=int, default=300, help="env steps of each env (default 300)")
-    be.add_argument("--episodes", type=int, default=4, help="stress episodes (default 4)")
+    be.add_argument(
+        "--runs", type=int_at_least(1), default=50, help="timed sampling calls (default 50)"
+    )
+    be.add_argument(
+        "--samples", type=int_at_least(1), default=1, help="samples per call (default 1)"
+    )
+    be.add_argument(
+        "--threads", type=int_at_least(1), help="torch threads (default: torch's choice)"
+    )
+    be.add_argument(
+        "--steps", type=int_at_least(1), default=300, help="env steps of each env (default 300)"
+    )
+    be.add_argument(
+        "--episodes", type=int_at_least(1), default=4, help="stress episodes (default 4)"
+    )
     be.add_argument(
         "--vector-envs",
         default="4,16,64",
@@ -169,7 +180,10 @@ def add_bench(sub) -> None:
         "'' to skip)",
     )
     be.add_argument(
-        "--vector-steps", type=int, default=50, help="vector steps of each size (default 50)"
+        "--vector-steps",
+        type=int_at_least(1),
+        default=50,
+        help="vector steps of each size (default 50)",
     )
     add_json_flag(be)
     be.set_defaults(func=_cmd_bench)
@@ -217,9 +231,6 @@ def _full_bench(args: argparse.Namespace) -> int:
 
     from counterscene_env.bench import STORED_WORKERS, run_bench
 
-    for flag in ("steps", "episodes", "runs", "vector_steps"):
-        if getattr(args, flag) < 1:
-            raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
     try:
         sizes = tuple(int(n) for n in args.vector_envs.split(",") if n.strip())
     except ValueError:

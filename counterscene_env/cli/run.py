@@ -15,6 +15,7 @@ from counterscene_env.cli.common import (
     add_quiet_flag,
     add_seed_flag,
     fmt,
+    int_at_least,
     json_safe,
     load_model,
     parse_overrides,
@@ -115,8 +116,7 @@ def add_stress(sub) -> None:
     )
     st.add_argument(
         "--videos",
-        type=int,
-        default=3,
+        type=int_at_least(0),
         metavar="K",
         help="with --out: re-simulate the K worst episodes as videos for the report "
         "(default 3; 0: none; needs the video extra)",
@@ -179,8 +179,10 @@ def _cmd_stress(args: argparse.Namespace) -> int:
     )
 
     _check_backend(args)
-    if args.videos < 0:
-        raise ValueError(f"--videos must be >= 0, got {args.videos}")
+    if args.videos is not None and not args.out:
+        raise ValueError("--videos needs --out DIR: the videos are part of the run's report")
+    if args.videos is None:
+        args.videos = 3
     if args.resume and not args.out:
         raise ValueError("--resume needs --out DIR: the directory of the run to continue")
     config = StressConfig(
@@ -387,9 +389,11 @@ def add_bench_env(sub) -> None:
         ),
     )
     bv.add_argument("--scenario", default="intersection", help="scenario (default intersection)")
-    bv.add_argument("--steps", type=int, default=500, help="env steps (default 500)")
+    bv.add_argument("--steps", type=int_at_least(1), default=500, help="env steps (default 500)")
     add_seed_flag(bv, 0, "seed (default 0)")
-    bv.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
+    bv.add_argument(
+        "--threads", type=int_at_least(1), help="torch threads (default: torch's choice)"
+    )
     bv.add_argument(
         "--policy",
         default="random",

@@ -55,7 +55,8 @@ def expand_seeds(seed: int | Sequence[int | None] | None, n: int) -> list[int | 
     if isinstance(seed, Sequence) and not isinstance(seed, str):
         if len(seed) != n:
             raise ValueError(f"seed needs one entry per env ({n}), got {seed!r}")
-        return list(seed)
+        # numpy's ints as ints; anything else is left for the env's own check to refuse
+        return [int(s) if isinstance(s, np.integer) else s for s in seed]
     raise TypeError(f"seed must be None, an int or a list of {n}, got {seed!r}")
 
 

@@ -6,6 +6,8 @@ import time
 
 import numpy as np
 
+from counterscene_env.config import check_int
+
 
 def bench_env(
     config: dict | None = None,
@@ -30,8 +32,10 @@ def bench_env(
 
     from counterscene_env.envs.single_agent import CounterSceneEnv
 
-    if threads:
-        torch.set_num_threads(threads)
+    check_int("steps", steps, ge=1)
+    check_int("seed", seed, ge=0)
+    if threads is not None:
+        torch.set_num_threads(check_int("threads", threads, ge=1))
     env = CounterSceneEnv(config=config)
     if policy not in ("random", "hold"):
         raise ValueError(f"policy must be 'random' or 'hold', got {policy!r}")

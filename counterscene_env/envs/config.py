@@ -136,6 +136,7 @@ def prepare(
         source = SceneSource(candidate["scenario"])  # raises on an unknown scenario
     model = shared_model(candidate["model"])
     sim = SimConfig.from_mapping(sim_settings(candidate))
+    sim.check_model(model.config.num_train_timesteps)
     windows = max(sim.max_windows, candidate["controlled_vehicles"])
     check_replan_memory(model.config, sim.num_samples, windows, sim.memory_limit_gb)
     return candidate, source
@@ -189,6 +190,7 @@ def validate(config: Mapping[str, Any], env: Any = None) -> None:
     if multi[1]:
         act = _check_type_dict("action.action_config", act.get("action_config"), ACTION_TYPES)
     _check_observation(obs)
+    _check_action(act)
     if obs["type"] == "TimeToCollision" and act["type"] != "DiscreteMetaAction":
         raise ValueError(
             "the TimeToCollision observation needs the DiscreteMetaAction action type "
@@ -266,6 +268,39 @@ def _check_observation(obs: Mapping[str, Any]) -> None:
                 f"observation.features has unknown names {unknown}; valid: "
                 f"{list(KINEMATIC_FEATURES)}"
             )
+    ranges = obs.get("features_range")
+    if ranges is not None:  # feature -> [low, high], the normalisation's range
+        if not isinstance(ranges, Mapping):
+            raise TypeError(
+                "observation.features_range must be a dict of feature -> [low, high], "
+                f"{describe_value(ranges)}"
+            )
+        for name, pair in ranges.items():
+            _check_range_pair(f"observation.features_range.{name}", pair)
+
+
+def _check_range_pair(key: str, value: Any) -> None:
+    lo, hi = _check_pair(key, value)
+    if not hi > lo:
+        raise ValueError(f"{key} must be [low, high] with low < high, got {list(value)}")
+
+
+def _check_action(act: Mapping[str, Any]) -> None:
+    """The ranges and speeds inside an action config, which highway-env takes on trust (a
+    reversed range flips the controls; an empty ``target_speeds`` fails at the first step)."""
+    for key in ("acceleration_range", "steering_range", "speed_range"):
+        if act.get(key) is not None:
+            _check_range_pair(f"action.{key}", act[key])
+    if "target_speeds" in act:
+        speeds = act["target_speeds"]
+        if not isinstance(speeds, list | tuple) or not speeds:
+            raise ValueError(
+                f"action.target_speeds must be a non-empty list of speeds in m/s, got {speeds!r}"
+            )
+        for i, v in enumerate(speeds):
+            check_real(f"action.target_speeds[{i}]", v, ge=0)
+    if "actions_per_axis" in act:
+        check_int("action.actions_per_axis", act["actions_per_axis"], ge=1)
 
 
 def _build_on_scratch(env: Any, config: Mapping[str, Any]) -> None:

@@ -71,6 +71,7 @@ class CounterSceneParallelEnv(ParallelEnv):
         self.agents: list[str] = []
         self.render_mode = render_mode
         self.core = CounterSceneEnv(config=config, render_mode=render_mode)
+        self.metadata = {**type(self).metadata, "render_fps": self.core.metadata["render_fps"]}
         # Cached: the same space objects for the env's whole life.
         self.observation_spaces = dict(
             zip(self.possible_agents, self.core.observation_space.spaces, strict=True)
@@ -119,6 +120,7 @@ class CounterSceneParallelEnv(ParallelEnv):
                 "new env with counterscene_env.parallel_env(...)"
             )
         obs, _ = self.core.reset(seed=seed, options=options)
+        self.metadata["render_fps"] = self.core.metadata["render_fps"]  # policy_frequency
         self.agents = list(self.possible_agents)
         observations = {a: obs[k] for k, a in enumerate(self.possible_agents)}
         infos = {a: self.core.ego_info(k) for k, a in enumerate(self.possible_agents)}
@@ -127,6 +129,11 @@ class CounterSceneParallelEnv(ParallelEnv):
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         if not self.agents:
             raise RuntimeError("every agent is done: call reset()")
+        if not isinstance(actions, Mapping):
+            raise TypeError(
+                f"actions must be a dict of agent name -> action ({self.agents}), "
+                f"got {type(actions).__name__}"
+            )
         missing = sorted(set(self.agents) - set(actions))
         extra = sorted(set(actions) - set(self.agents))
         if missing or extra:

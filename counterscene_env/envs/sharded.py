@@ -40,6 +40,7 @@ from counterscene_env.envs.batching import (
     reset_mask,
     unbatch_info,
 )
+from counterscene_env.envs.single_agent import CounterSceneEnv
 from counterscene_env.envs.vector import CounterSceneVectorEnv
 
 #: Errors a worker hands back as they are: bad input, named by its key or env.
@@ -117,7 +118,8 @@ class ShardedVectorEnv(VectorEnv):
             raise
         self.single_observation_space, self.single_action_space, mode = spaces
         self.autoreset_mode = mode
-        self.metadata = {**self.metadata, "autoreset_mode": mode}
+        fps = {**CounterSceneEnv.default_config(), **(config or {})}["policy_frequency"]
+        self.metadata = {**self.metadata, "autoreset_mode": mode, "render_fps": fps}
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self._obs: list[Any] = [None] * num_envs

@@ -11,6 +11,7 @@ docstring of :class:`CounterSceneEnv` and ``docs/environment.md``.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -44,6 +45,9 @@ from counterscene_env.scene.sources import SceneSource
 from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.sim.state import Episode
 from counterscene_env.world_model.checkpoint import shared_model
+
+#: The keys of ``reset(options=...)`` (``CounterSceneEnv.reset``).
+RESET_OPTIONS = ("config", "scene", "episode_seed")
 
 
 def draw_episode_seed(rng: np.random.Generator) -> int:
@@ -144,15 +148,13 @@ class CounterSceneEnv(AbstractEnv):
         self._constructing = True
         super().__init__(config, render_mode)
         self._constructing = False
+        self.update_metadata()  # render_fps from the start (RecordVideo reads it on wrapping)
 
     def update_metadata(self, video_real_time_ratio: int = 1) -> None:
         """This instance's ``render_fps``: one frame per policy step (per simulation step
         while a ``RecordVideo`` wrapper records the intermediate frames), in real time."""
-        fps = (
-            self.config["simulation_frequency"]
-            if self._record_video_wrapper
-            else self.config["policy_frequency"]
-        )
+        recording = getattr(self, "_record_video_wrapper", None)  # unset while constructing
+        fps = self.config["simulation_frequency" if recording else "policy_frequency"]
         self.metadata = {**type(self).metadata, "render_fps": video_real_time_ratio * fps}
 
     # ------------------------------------------------------------------ configuration
@@ -171,6 +173,7 @@ class CounterSceneEnv(AbstractEnv):
         candidate, source = self._prepare(config)
         super().configure(candidate)
         self._source = source
+        self.update_metadata()
 
     def check_config(self, config: Mapping | None) -> SimConfig:
         """Raise as ``configure(config)`` would, changing nothing; the closed-loop settings
@@ -229,8 +232,9 @@ class CounterSceneEnv(AbstractEnv):
         ``"scene"``: a :class:`Scene` to run instead of drawing one; ``"episode_seed"``: the
         closed loop's seed (world-model noise, adversary tie-breaks) instead of one drawn from
         the env's generator; ``counterscene stress`` passes its episode seeds so every planner
-        meets the same traffic randomness. Other keys are ignored (PettingZoo's API test sends
-        some). Bad input is refused before anything changes.
+        meets the same traffic randomness. Other keys are ignored with a warning (a misspelt
+        option would otherwise silently run another episode; PettingZoo's API test sends
+        one). Bad input is refused before anything changes.
         """
         if self._constructing:
             # Stand-in egos (no road) give highway-env's per-ego spaces their length.
@@ -238,10 +242,19 @@ class CounterSceneEnv(AbstractEnv):
             self.controlled_vehicles = [Vehicle(None, np.zeros(2)) for _ in range(n)]
             self.define_spaces()
             return None, {}
+        if options is not None and not isinstance(options, Mapping):
+            raise TypeError(f"options must be a dict or None, got {options!r}")
         options = dict(options or {})
+        unknown = sorted(set(options) - set(RESET_OPTIONS), key=str)
+        if unknown:
+            warnings.warn(
+                f"reset ignores the unknown options {unknown}; known: {list(RESET_OPTIONS)}",
+                stacklevel=2,
+            )
         candidate, source = self._prepare(options.pop("config", None))
         egos = candidate["controlled_vehicles"]
         check_episode_inputs(seed, options.get("scene"), options.get("episode_seed"), egos)
+        seed = None if seed is None else int(seed)  # numpy's ints too; Gymnasium wants int
         super().configure(candidate)
         self._source, self._reset_options, self._failure = source, options, None
         try:

@@ -33,6 +33,7 @@ from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import numpy as np
+from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array, iterate
 
@@ -93,7 +94,12 @@ class CounterSceneVectorEnv(VectorEnv):
         self.num_envs = num_envs
         self.render_mode = render_mode
         self.autoreset_mode = mode
-        self.metadata = {**self.metadata, "autoreset_mode": mode}
+        # One frame per policy step, as each env's (``render_fps``).
+        self.metadata = {
+            **self.metadata,
+            "autoreset_mode": mode,
+            "render_fps": first.metadata["render_fps"],
+        }
         self.single_observation_space = first.observation_space
         self.single_action_space = first.action_space
         self.observation_space = batch_space(self.single_observation_space, num_envs)
@@ -147,6 +153,7 @@ class CounterSceneVectorEnv(VectorEnv):
         self._terminations[mask] = self._truncations[mask] = self._ended[mask] = False
         self._rewards[mask] = 0.0
         self._started = True
+        self.metadata["render_fps"] = self.envs[0].metadata["render_fps"]  # policy_frequency
         return self._batch_obs(), infos
 
     def check_reset(
@@ -244,13 +251,31 @@ class CounterSceneVectorEnv(VectorEnv):
         """Raise what :meth:`step` with these actions would raise; change nothing."""
         actions, resetting = self._check_actions(actions)
         for i in np.flatnonzero(~resetting):
-            self.envs[i].check_step(actions[i])
+            self._check_env_step(i, actions[i])
+
+    def _check_env_step(self, i: int, action: Any) -> Any:
+        """Env ``i``'s ``check_step``; a refused action's message names the env."""
+        try:
+            return self.envs[i].check_step(action)
+        except (TypeError, ValueError) as exc:
+            raise type(exc)(f"env {i + self.first_index}: {exc}") from None
 
     def _check_actions(self, actions: Any) -> tuple[list, np.ndarray]:
         """The actions, one per env, and the envs due an autoreset (their action is ignored);
         raises before ``reset`` and, autoreset disabled, for an ended env."""
         if not self._started:
             raise RuntimeError("call reset() before step()")
+        if isinstance(self.action_space, spaces.Box):
+            # A batch of the wrong shape, named as a batch (e.g. one env's action for all).
+            try:
+                shape = np.shape(actions)
+            except ValueError:  # ragged
+                shape = "a ragged nesting"
+            if shape != self.action_space.shape:
+                raise ValueError(
+                    f"actions must have shape {self.action_space.shape} (one row per env), "
+                    f"got {shape}"
+                )
         actions = list(iterate(self.action_space, actions))
         if len(actions) != self.num_envs:
             raise ValueError(f"step needs {self.num_envs} actions, got {len(actions)}")
@@ -274,7 +299,7 @@ class CounterSceneVectorEnv(VectorEnv):
         indices = [int(i) for i in indices]
         if len(actions) != len(indices):
             raise ValueError(f"{len(indices)} envs but {len(actions)} actions")
-        checked = [self.envs[i].check_step(a) for i, a in zip(indices, actions, strict=True)]
+        checked = [self._check_env_step(i, a) for i, a in zip(indices, actions, strict=True)]
         self._run_frames(indices, checked)
         return [self.envs[i].end_step(a) for i, a in zip(indices, checked, strict=True)]
 

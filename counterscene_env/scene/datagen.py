@@ -27,6 +27,7 @@ from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from pathlib import Path
 
+from counterscene_env.config import check_int
 from counterscene_env.scene.blocks import (
     convert_commonroad_block,
     convert_scenarionet_block,
@@ -55,8 +56,9 @@ def generate_dataset(
 
     if scenario not in SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; choose one of {SCENARIOS}")
-    if scenes < 1 or shard_size < 1 or workers < 1:
-        raise ValueError("scenes, shard_size and workers must be positive")
+    for key, value in (("scenes", scenes), ("shard_size", shard_size), ("workers", workers)):
+        check_int(key, value, ge=1)
+    check_int("seed", seed, ge=0)
     params = {
         "source": "highway-env",
         "scenario": scenario,

@@ -127,7 +127,7 @@ class SimConfig:
     guidance_progress: str = choice_field(GuidanceProgress, GuidanceProgress.DENOISING)
     sampler: str | None = choice_field(Sampler, None)
     sampling_steps: int | None = bounded(None, ge=1)
-    eta: float | None = bounded(None, ge=0)
+    eta: float | None = bounded(None, ge=0, le=1)
     map_guidance: float | None = bounded(None, ge=0)
     lane_steering: int | None = bounded(10, ge=0)
     hold_parked: float | None = bounded(None, ge=0)
@@ -143,6 +143,22 @@ class SimConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)  # types, ranges and choices, each refusal naming its key
+        if self.warm_first_replan and self.warm_start_steps == 0:
+            raise ValueError(
+                "warm_first_replan needs warm_start_steps > 0 (the steps a warm replan "
+                "runs), got warm_start_steps = 0"
+            )
+
+    def check_model(self, num_train_timesteps: int) -> None:
+        """Raise unless these settings fit a model trained on ``num_train_timesteps`` noise
+        levels (``ModelConfig.num_train_timesteps``): the sampler strides over them, so
+        ``sampling_steps`` is at most that."""
+        steps = self.sampling_steps
+        if steps is not None and steps > num_train_timesteps:
+            raise ValueError(
+                f"sampling_steps must be <= {num_train_timesteps} (the model's "
+                f"num_train_timesteps), got {steps}"
+            )
 
     @classmethod
     def from_mapping(cls, values: Mapping) -> SimConfig:

@@ -91,6 +91,7 @@ class ClosedLoop:
     def __init__(self, model: WorldModel, config: SimConfig | None = None) -> None:
         self.model = model.eval()
         self.config = config or SimConfig()
+        self.config.check_model(model.config.num_train_timesteps)
         preset = guidance_preset(self.config.guidance)
         self.guidance = dataclasses.replace(
             preset,

@@ -51,10 +51,10 @@ def check_replan_memory(
     need = replan_bytes(model_config, num_samples, windows)
     limit = DEFAULT_SHARE * total_memory_bytes() if limit_gb is None else limit_gb * 2**30
     if need > limit:
-        per = (need - BASE_BYTES) / (num_samples * windows) / 2**20
+        per = (need - BASE_BYTES) / (num_samples * windows) / 1e6  # MB, as the docs give it
         raise ValueError(
             f"num_samples = {num_samples} x {windows} model window(s) would need about "
-            f"{need / 2**30:.1f} GB per replan ({per:.1f} MB per sample and window), more "
-            f"than the limit of {limit / 2**30:.1f} GB (memory_limit_gb; default half of "
+            f"{need / 2**30:.3g} GB per replan ({per:.1f} MB per sample and window), more "
+            f"than the limit of {limit / 2**30:.3g} GB (memory_limit_gb; default half of "
             "this machine's memory): use fewer samples or raise memory_limit_gb"
         )

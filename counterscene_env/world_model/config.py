@@ -155,6 +155,7 @@ class ModelConfig:
                 1 <= self.sampling_steps <= self.num_train_timesteps,
                 "sampling_steps must be in [1, num_train_timesteps]",
             ),
+            (0.0 <= self.eta <= 1.0, "eta must be in [0, 1] (0: DDIM, 1: DDPM posterior)"),
             (0.0 <= self.graph_dropout < 1.0, "graph_dropout must be in [0, 1)"),
             (self.hold_parked >= 0.0, "hold_parked must be >= 0 (0 disables it)"),
         ]

@@ -11,6 +11,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from counterscene_env.config import bounded, check_fields
+
 __all__ = ["UNSIZED_FIELDS", "TrainConfig", "learning_rate", "plain_settings"]
 
 
@@ -60,33 +62,29 @@ class TrainConfig:
     out: str
     preset: str = "default"
     model_overrides: Mapping[str, Any] = field(default_factory=dict)
-    steps: int = 20000
-    batch_size: int = 32
-    lr: float = 1e-4
-    ema_decay: float = 0.995
-    ema_start: int = 4000
-    lr_decay_start: int | None = None
-    grad_clip: float = 1.0
-    window_stride: int = 5
-    val_fraction: float = 0.05
-    val_windows: int = 128
-    checkpoint_every: int = 500
-    seed: int = 0
+    steps: int = bounded(20000, ge=1)
+    batch_size: int = bounded(32, ge=1)
+    lr: float = bounded(1e-4, ge=0)
+    ema_decay: float = bounded(0.995, ge=0, le=1)
+    ema_start: int = bounded(4000, ge=0)
+    lr_decay_start: int | None = bounded(None, ge=0)
+    grad_clip: float = bounded(1.0, gt=0)
+    window_stride: int = bounded(5, ge=1)
+    val_fraction: float = bounded(0.05, ge=0, le=0.5)
+    val_windows: int = bounded(128, ge=1)
+    checkpoint_every: int = bounded(500, ge=1)
+    seed: int = bounded(0, ge=0)
     device: str = "cpu"
     init: str | None = None
-    off_lane_weight: float = 0.0
-    overlap_weight: float = 0.0
-    min_future_steps: int | None = None
+    off_lane_weight: float = bounded(0.0, ge=0)
+    overlap_weight: float = bounded(0.0, ge=0)
+    min_future_steps: int | None = bounded(None, ge=1)
     agent_centred: tuple[str, ...] = ()
     data_weights: tuple[float, ...] | None = None
-    parked_cars: float = 0.0
+    parked_cars: float = bounded(0.0, ge=0, le=1)
 
     def __post_init__(self) -> None:
-        for key in ("off_lane_weight", "overlap_weight"):
-            if not getattr(self, key) >= 0:
-                raise ValueError(f"{key} must be >= 0, got {getattr(self, key)}")
-        if not 0 <= self.parked_cars <= 1:
-            raise ValueError(f"parked_cars must be in [0, 1], got {self.parked_cars}")
+        check_fields(self)  # every number by type and range, naming the field
         unknown = [d for d in self.agent_centred if d not in self.data]
         if unknown:
             raise ValueError(f"agent_centred names datasets not in data: {unknown}")
