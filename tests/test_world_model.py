@@ -499,6 +499,49 @@ def test_lane_steering_leaves_plans_that_run_past_the_end_of_the_map_alone():
     assert not torch.equal(steer_onto_lanes(tiny, batch, drifting, 40), drifting)
 
 
+def _two_way_road(length: float = 300.0):
+    """One lane each way, 4 m wide: eastbound on y = 0, westbound on y = 4."""
+    from highway_env.road.lane import StraightLane
+    from highway_env.road.road import RoadNetwork
+
+    from counterscene_env.scene.road import RoadMap
+
+    net = RoadNetwork()
+    net.add_lane("a", "b", StraightLane([0.0, 0.0], [length, 0.0], width=4.0))
+    net.add_lane("b", "a", StraightLane([length, 4.0], [0.0, 4.0], width=4.0))
+    return RoadMap.from_network(net)
+
+
+def test_a_plan_in_the_oncoming_lane_is_off_its_lanes_and_steered_back():
+    """The oncoming lane is no lane to keep to: with the car's course known, a plan there is
+    off its lanes by the distance to its own strip, and lane keeping brings it back."""
+    from counterscene_env.world_model.lane_steering import steer_onto_lanes
+    from counterscene_env.world_model.map_guidance import lane_excess
+
+    tiny = _model(normalization=Normalization((0.0, 0.0), (1.4, 0.3)))
+    # Both cars drive east: row 0 in its lane, row 1 in the westbound lane.
+    scene = _straight_scene((10.0, 10.0), (0.0, 4.0), (0.0, -15.0))
+    batch = _batch(tiny, [scene.replace(road=_two_way_road())])
+    c = tiny.config
+    x = tiny.normalize(torch.zeros(1, c.num_agents, c.action_tokens, 2))  # straight on
+    state = tiny.current_state(batch)
+    lanes = (batch["map"], batch["map_valid"], batch["map_widths"])
+
+    def off(tokens, way=True):  # [2, F] m outside the lanes (going the car's way)
+        traj = tiny.rollout(tokens, state)
+        return lane_excess(traj[..., :2], *lanes, headings=traj[..., 2] if way else None)[0, :2]
+
+    assert off(x, way=False).max() < 1e-6  # on a lane strip, whichever its way
+    assert off(x)[0].max() < 1e-6 and off(x)[1].min() == pytest.approx(2.0, abs=0.05)
+    steered = steer_onto_lanes(tiny, batch, x, 40)
+    assert torch.equal(steered[0, 0], x[0, 0])  # the car in its own lane is left alone
+    assert off(steered)[1, -10:].max() < 0.05 < off(x)[1, -10:].min()
+    # The closed loop's guided adversary keeps to any lane strip: it is left where it is.
+    any_way = torch.zeros(1, c.num_agents, dtype=torch.bool)
+    any_way[0, 1] = True
+    assert torch.equal(steer_onto_lanes(tiny, batch, x, 40, any_way), x)
+
+
 def _steering_cost(tiny, x, state, lanes_batch=None):
     """A ``SteeringCost`` for tokens ``x [N, K, Ta, 2]`` from states ``[N, K, 4]``, with every
     point's candidates the segments of one straight two-lane road."""
@@ -522,7 +565,8 @@ def _steering_cost(tiny, x, state, lanes_batch=None):
     ok = torch.ones(R, F, 6, dtype=torch.bool)
     first = torch.tensor([True, False, False, True, False, False]).expand(R, F, 6)
     last = torch.tensor([False, False, True, False, False, True]).expand(R, F, 6)
-    cands = tuple(t.numpy() for t in (ca, cb, half, ok, first, last))
+    wrong = torch.zeros(R, F, 6).double()  # every lane goes the car's way
+    cands = tuple(t.numpy() for t in (ca, cb, half, ok, first, last, wrong))
     flat = lambda t: t.flatten(0, 1).double().numpy()  # noqa: E731
     return SteeringCost(
         flat(v),

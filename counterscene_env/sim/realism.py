@@ -61,8 +61,10 @@ def plan_cost(
     pair = np.triu(np.ones(pair.shape[1:], bool), 1)[None] & pair
     overlaps = torch.from_numpy((hit & pair[..., None]).sum(axis=(1, 2, 3)).astype(np.float32))
 
-    off = lane_excess(xy, *lanes)  # [N, K, T]
-    on_lane = off[..., 0] <= ON_LANE_TOLERANCE
+    # Off the lanes going the agent's way: the oncoming lane is no lane to keep to.
+    off = lane_excess(xy, *lanes, headings=trajectory[:, :, :steps, 2])  # [N, K, T]
+    # On a lane now, whichever its way (a car already in the oncoming lane is to go back).
+    on_lane = lane_excess(xy[:, :, :1], *lanes)[..., 0] <= ON_LANE_TOLERANCE
     weight = (keep & on_lane).float()
     off_cost = ((off**2).mean(-1) * weight).sum(-1) / weight.sum(-1).clamp(min=1)
     return overlaps + off_cost

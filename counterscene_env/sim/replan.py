@@ -304,11 +304,16 @@ class Replanner:
         # never the selected adversary (a car that pulls out of a driveway in the log may be
         # one), guided or not, so that a guided and an unguided row plan the same agents.
         hold = self.model.held_agents(batch, c.hold_parked)
+        # The guided adversary keeps to any lane strip, whichever its way: its counterfactual
+        # crosses into the ego's lane, and lane keeping must not undo the guidance
+        # (docs/world_model.md, "Wrong-way driving").
+        any_way = torch.zeros_like(hold)
         for j, adv in enumerate(adv_rows):
             if adv >= 0:
                 hold[j, adv] = False
+                any_way[j, adv] = g.enabled
         pred = self.model.sample(
-            batch, S, gens, guidance=hook, **self.sample_kwargs, **warm, held=hold
+            batch, S, gens, guidance=hook, **self.sample_kwargs, **warm, held=hold, any_way=any_way
         )
         ego_rows = [
             [r for r in (w.row_of(e) for e in eps[o].egos) if r >= 0]

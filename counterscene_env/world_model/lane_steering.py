@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from counterscene_env.dynamics import max_yaw_rate
-from counterscene_env.world_model.map_guidance import on_lane_agents
+from counterscene_env.world_model.map_guidance import on_lane_agents, wrong_way
 
 LANE_MARGIN = 0.2  # m: steered points end at least this far inside a lane strip's edge
 CANDIDATES = 6  # lane segments per predicted point that the steering may aim at
@@ -27,7 +27,11 @@ ADAM_EPS = 1e-8
 
 
 def steer_onto_lanes(
-    model, batch: dict[str, torch.Tensor], normalized: torch.Tensor, iterations: int
+    model,
+    batch: dict[str, torch.Tensor],
+    normalized: torch.Tensor,
+    iterations: int,
+    any_way: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Correct the *yaw-rate* tokens of finished samples so that every on-lane agent's
     rolled-out centre stays inside a lane strip of the window's map.
@@ -49,6 +53,9 @@ def steer_onto_lanes(
         normalized: ``[B * S, K, Ta, 2]`` sampled action tokens, normalised (S samples per
             scene, scene-major as ``WorldModel.sample`` draws them).
         iterations: Adam steps; 0 returns ``normalized`` unchanged.
+        any_way: ``[B, K]`` bool, agents kept on any lane strip, whichever its way (the
+            closed loop's guided adversary, whose counterfactual may cross into the ego's
+            lane); None: every agent keeps to the lanes going its way.
 
     Returns:
         ``[B * S, K, Ta, 2]``: the tokens with corrected yaw rates (agents off every lane at
@@ -67,7 +74,8 @@ def steer_onto_lanes(
     c = model.config
     with torch.no_grad():
         traj = model.rollout(normalized, state)  # [N, K, F, 4]
-        cands = _candidates(traj[..., :2], a, b, half, ok, P)
+        free = None if any_way is None else any_way.to(torch.bool).repeat_interleave(S, 0)
+        cands = _candidates(traj[..., :2], traj[..., 2], a, b, half, ok, P, free)
         v = traj[..., 3]  # [N, K, F] speed after each step
         entering = torch.cat([state[..., None, 3], v[..., :-1]], -1)  # speed entering step k
         limit = max_yaw_rate(entering, c.yaw_gain, c.lateral_limit)
@@ -151,11 +159,12 @@ class SteeringCost:
     ) -> None:
         self.v, self.limit, self.pose, self.cands = v, limit, pose, cands
         self.std, self.mean, self.stride, self.dt = std, mean, stride, dt
-        ca, cb, ch, cok, first, last = cands
+        ca, cb, ch, cok, first, last, extra = cands
         self._a = ca[..., 0], ca[..., 1]
         self._ab = cb[..., 0] - ca[..., 0], cb[..., 1] - ca[..., 1]
         self._ab2 = np.maximum(self._ab[0] ** 2 + self._ab[1] ** 2, 1e-9)
-        self._half, self._bad, self._first, self._last = ch, ~cok, first, last
+        # A lane going the other way: its strip counts as narrower by the wrong-way penalty.
+        self._half, self._bad, self._first, self._last = ch - extra, ~cok, first, last
 
     def subset(self, rows: np.ndarray) -> SteeringCost:
         """The cost of the agents ``rows`` (a boolean mask over R)."""
@@ -233,18 +242,30 @@ class SteeringCost:
 
 
 def _candidates(
-    xy: torch.Tensor, a: torch.Tensor, b: torch.Tensor, half: torch.Tensor, ok: torch.Tensor, P: int
+    xy: torch.Tensor,
+    course: torch.Tensor,
+    a: torch.Tensor,
+    b: torch.Tensor,
+    half: torch.Tensor,
+    ok: torch.Tensor,
+    P: int,
+    any_way: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, ...]:
-    """Each predicted point's ``CANDIDATES`` nearest lane sub-segments.
+    """Each predicted point's ``CANDIDATES`` nearest lane sub-segments, a segment going the
+    other way counted ``map_guidance.WRONG_WAY_PENALTY`` m farther (so a plan drifting into
+    the oncoming lane is steered back to its own, not kept on the other's).
 
     Args:
-        xy: ``[N, K, F, 2]`` predicted centres, m; ``a``, ``b``: ``[N, S, 2]`` sub-segment ends
-            (``S = M (P - 1)``, lane piece by lane piece); ``half``: ``[N, S]`` allowed
-            half-widths, m; ``ok``: ``[N, S]`` validity; ``P``: points per lane piece.
+        xy: ``[N, K, F, 2]`` predicted centres, m; ``course``: ``[N, K, F]`` rad, the plan's
+            course there; ``a``, ``b``: ``[N, S, 2]`` sub-segment ends (``S = M (P - 1)``,
+            lane piece by lane piece); ``half``: ``[N, S]`` allowed half-widths, m; ``ok``:
+            ``[N, S]`` validity; ``P``: points per lane piece; ``any_way``: ``[N, K]`` bool,
+            agents without the wrong-way penalty.
 
     Returns:
         ``[N, K, F, C, ...]``: the candidates' ends ``a``, ``b`` (``[..., 2]``), half-widths,
-        validity, and whether each is the first or the last sub-segment of its lane piece.
+        validity, whether each is the first or the last sub-segment of its lane piece, and
+        its wrong-way penalty, m.
     """
     # Chosen once: refreshing them as the points move bought little for its cost. They are
     # ranked by the distance to the segments' midpoints less their half-widths, one matrix
@@ -254,7 +275,12 @@ def _candidates(
     N = xy.shape[0]
     mid = (a + b) / 2  # [N, S, 2]
     gap = torch.cdist(xy.flatten(1, 2), mid) - half[:, None]  # [N, K*F, S]
-    gap = torch.where(ok[:, None], gap, torch.inf)
+    # A lane going the other way counts WRONG_WAY_PENALTY m farther, here and in the cost.
+    extra = wrong_way((b - a)[:, None], course.flatten(1, 2)[..., None])  # [N, K*F, S]
+    if any_way is not None:
+        free = any_way[:, :, None].expand(course.shape).flatten(1, 2)[..., None]  # [N, K*F, 1]
+        extra = torch.where(free, 0.0, extra)
+    gap = torch.where(ok[:, None], gap + extra, torch.inf)
     idx = gap.topk(min(CANDIDATES, gap.shape[-1]), dim=-1, largest=False).indices
     scene = torch.arange(N, device=idx.device)[:, None, None]
     shape = (*xy.shape[:3], idx.shape[-1])  # [N, K, F, C]
@@ -268,4 +294,5 @@ def _candidates(
         ok[scene, idx].reshape(shape),
         sub == 0,
         sub == P - 2,
+        extra.gather(-1, idx).reshape(shape).double(),
     )

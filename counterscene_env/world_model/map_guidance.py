@@ -19,6 +19,15 @@ from __future__ import annotations
 import torch
 
 ON_LANE_TOLERANCE = 1.0  # m outside a lane strip at "now" that still counts as on a lane
+#: A lane goes a car's way when its direction is less than 90 degrees from the car's course
+#: (the cosine of the angle between them is above this).
+SAME_WAY_COS = 0.0
+#: m: how much farther than it is a lane going the other way counts, for a car whose course
+#: is known (``lane_excess``'s ``headings``). The oncoming lane, 4 m over, is no lane to keep
+#: to: a plan in it is off its lanes by the distance to its own. Where no lane goes its way
+#: within this (a U-turn), the nearest lane still counts, this much farther
+#: (docs/world_model.md, "Wrong-way driving").
+WRONG_WAY_PENALTY = 10.0
 NEAREST_PIECES = 8  # lane pieces per point that ``lane_excess`` measures before its check
 
 
@@ -38,13 +47,22 @@ def _segment_projection(
 
 
 def lane_excess(
-    points: torch.Tensor, lanes: torch.Tensor, lanes_valid: torch.Tensor, widths: torch.Tensor
+    points: torch.Tensor,
+    lanes: torch.Tensor,
+    lanes_valid: torch.Tensor,
+    widths: torch.Tensor,
+    headings: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Distance [m] by which points lie outside every lane strip (0 inside one).
 
     Args:
         points: ``[N, A, T, 2]`` m (ego frame).
-        lanes: ``[N, M, P, 2]`` lane centre points, m; ``lanes_valid [N, M]``; ``widths [N, M]`` m.
+        lanes: ``[N, M, P, 2]`` lane centre points in driving direction, m; ``lanes_valid
+            [N, M]``; ``widths [N, M]`` m.
+        headings: ``[N, A, T]`` rad, the car's course at each point: a lane segment going
+            the other way counts :data:`WRONG_WAY_PENALTY` m farther than it is (its way:
+            :data:`SAME_WAY_COS`). None: every strip counts as it is (a parked car, the log's
+            own positions).
 
     Returns:
         ``[N, A, T]``; a large value (1e3 m) where a scene has no lanes at all.
@@ -59,7 +77,7 @@ def lane_excess(
     N, M, P, _ = lanes.shape
     k = min(NEAREST_PIECES, M)
     if k == M:
-        return _excess_all(points, lanes, lanes_valid, widths)
+        return _excess_all(points, lanes, lanes_valid, widths, headings)
     shape = points.shape[:-1]
     q = points.reshape(N, -1, 2)  # [N, Q, 2]
     half = widths / 2  # [N, M]
@@ -77,30 +95,54 @@ def lane_excess(
         b = seg[..., 1:, :].reshape(*pick.shape[:2], S, 2)
         h = half[n, pick][..., None].expand(*pick.shape, P - 1).reshape(*pick.shape[:2], S)
         ok = lanes_valid[n, pick][..., None].expand(*pick.shape, P - 1).reshape(h.shape)
-    excess = _segment_excess(q, a, b, h, ok).min(dim=-1).values  # [N, Q]
+        # The bound stays a lower bound: the penalty only adds.
+        extra = None if headings is None else _wrong_way(a, b, headings.reshape(N, -1)[..., None])
+    excess = _segment_excess(q, a, b, h, ok, extra).min(dim=-1).values  # [N, Q]
     with torch.no_grad():
         left_out = bound.scatter(-1, pick, torch.inf).amin(-1)
         unsure = (left_out < excess) | ~lanes_valid.any(-1, keepdim=True)
     if unsure.any():
         rows, cols = unsure.nonzero(as_tuple=True)
+        way = None if headings is None else headings.reshape(N, -1)[rows, cols][:, None, None]
         full = _excess_all(
-            q[rows, cols][:, None, None], lanes[rows], lanes_valid[rows], widths[rows]
+            q[rows, cols][:, None, None], lanes[rows], lanes_valid[rows], widths[rows], way
         )
         excess = excess.index_put((rows, cols), full[:, 0, 0])
     return excess.reshape(shape)
 
 
+def wrong_way(d: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
+    """``[...]`` m: :data:`WRONG_WAY_PENALTY` where a segment of direction ``d [..., 2]``
+    goes against the course ``heading`` [rad] (broadcast), else 0."""
+    same = d[..., 0] * torch.cos(heading) + d[..., 1] * torch.sin(heading) > SAME_WAY_COS
+    return torch.where(same, 0.0, WRONG_WAY_PENALTY)
+
+
+def _wrong_way(a: torch.Tensor, b: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
+    return wrong_way(b - a, heading)
+
+
 def _segment_excess(
-    p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, half: torch.Tensor, ok: torch.Tensor
+    p: torch.Tensor,
+    a: torch.Tensor,
+    b: torch.Tensor,
+    half: torch.Tensor,
+    ok: torch.Tensor,
+    extra: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """``[..., S]`` excess [m] of points ``p [..., 2]`` over strips of half-width ``half`` round
-    segments ``a -> b [..., S, 2]`` (1e3 where not ``ok``)."""
+    segments ``a -> b [..., S, 2]``, plus ``extra [..., S]`` m (1e3 where not ``ok``)."""
     dist = _segment_distance(p[..., None, :], a, b)
-    return torch.where(ok, (dist - half).clamp(min=0), torch.full_like(dist, 1e3))
+    gap = dist - half if extra is None else dist - half + extra
+    return torch.where(ok, gap.clamp(min=0), torch.full_like(dist, 1e3))
 
 
 def _excess_all(
-    points: torch.Tensor, lanes: torch.Tensor, lanes_valid: torch.Tensor, widths: torch.Tensor
+    points: torch.Tensor,
+    lanes: torch.Tensor,
+    lanes_valid: torch.Tensor,
+    widths: torch.Tensor,
+    headings: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """``lane_excess`` over every segment of the map (``[N, A, T, M (P - 1)]`` distances)."""
     a, b = lanes[:, :, :-1], lanes[:, :, 1:]  # [N, M, P-1, 2] segments
@@ -108,7 +150,8 @@ def _excess_all(
     a, b = a.reshape(N, 1, 1, M * S, 2), b.reshape(N, 1, 1, M * S, 2)
     half = (widths / 2)[:, :, None].expand(N, M, S).reshape(N, 1, 1, M * S)
     ok = lanes_valid[:, :, None].expand(N, M, S).reshape(N, 1, 1, M * S)
-    return _segment_excess(points, a, b, half, ok).min(dim=-1).values
+    extra = None if headings is None else _wrong_way(a, b, headings[..., None])
+    return _segment_excess(points, a, b, half, ok, extra).min(dim=-1).values
 
 
 # A predicted point counts against the training loss's off-lane term only where the log itself

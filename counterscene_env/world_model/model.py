@@ -235,6 +235,7 @@ class WorldModel(nn.Module):
         init: torch.Tensor | None = None,
         init_steps: int = 0,
         held: torch.Tensor | None = None,
+        any_way: torch.Tensor | None = None,
     ) -> Prediction:
         """Sample every agent's future, ``num_samples`` per scene, in one batched call.
 
@@ -266,6 +267,9 @@ class WorldModel(nn.Module):
                 (``ModelConfig.hold_parked``; a caller that guides an agent passes it with
                 that agent cleared). A held agent is taken out of the network's view and its
                 plan is ``hold.stop_actions``: it stops over the first token and stays.
+            any_way: ``[B, K]`` bool, agents that lane keeping keeps on any lane strip,
+                whichever its way (``steer_onto_lanes``); default none: every agent keeps to
+                the lanes going its way.
         """
         c = self.config
         sampler = sampler or c.sampler
@@ -321,7 +325,7 @@ class WorldModel(nn.Module):
         still = self.normalize(torch.zeros(2, device=device))
         x = torch.where(planned.repeat_interleave(num_samples, 0)[..., None, None], x, still)
         steer = c.lane_steering if lane_steering is None else lane_steering
-        x = self._hold(steer_onto_lanes(self, batch, x, steer), held, state)
+        x = self._hold(steer_onto_lanes(self, batch, x, steer, any_way), held, state)
         with torch.no_grad():
             traj = self.rollout(x, state)
             actions = self.denormalize(x).repeat_interleave(c.action_stride, -2)

@@ -1,0 +1,153 @@
+"""Wrong-way driving in the closed loop: how often the world model's traffic drives in the lane
+of the oncoming traffic (docs/world_model.md, "Wrong-way driving").
+
+A moving vehicle (over 1 m/s) is *wrong-way* at a step when its centre lies within 1 m of the
+centre line of a lane whose direction is more than 135 degrees from its course, and more than
+2 m from the centre line of every lane going its way (within 45 degrees). The tool runs the unguided closed loop with the log replayed
+for the ego on stored scenes, and counts the episodes in which a vehicle other than the ego is
+wrong-way for at least 1 s, and the share of moving vehicle-steps that are; the logs' own
+figures are given beside them (0 on generated roads). It also sorts the collisions between two
+vehicles other than the ego that the log does not have by how the two were heading at their
+first overlapping step: head-on (courses over 150 degrees apart), the same way (under 30) or
+crossing:
+
+    python tools/wrong_way.py data/eval-intersection [--episodes 50] [--set KEY=VALUE ...]
+
+``--set`` takes closed-loop keys (JSON values), e.g. ``--set lane_steering=0 traffic_yields=false
+road_keeping=false`` for the network alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from counterscene_env.geometry import wrap_angle
+from counterscene_env.metrics.common import rollout_slice, wilson_interval
+from counterscene_env.metrics.safety import agent_overlaps
+from counterscene_env.planners import make_planner
+from counterscene_env.scene.core import Scene
+from counterscene_env.scene.sources import loaded_scenes
+from counterscene_env.sim import ClosedLoop, SimConfig
+from counterscene_env.stress import run_batch
+from counterscene_env.world_model.checkpoint import load_model
+
+MOVING = 1.0  # m/s
+OWN_WAY = np.pi / 4  # rad: a lane within this of the course goes the car's way
+OTHER_WAY = 3 * np.pi / 4  # rad: a lane beyond this goes against it
+FAR_FROM_OWN = 2.0  # m from every centre line going its way
+ON_OTHER = 1.0  # m from a centre line going against it, at most
+MIN_STEPS = 10  # 1 s at 10 Hz: an episode counts when one vehicle is wrong-way this long
+
+
+def _segments(scene: Scene) -> tuple[np.ndarray, ...]:
+    """Every lane segment of the scene's map: starts, ends ``[S, 2]`` m and directions
+    ``[S]`` rad."""
+    a = np.concatenate([line[:-1] for line in scene.road.lane_centerlines])
+    b = np.concatenate([line[1:] for line in scene.road.lane_centerlines])
+    d = b - a
+    return a, b, np.arctan2(d[:, 1], d[:, 0])
+
+
+def wrong_way_steps(scene: Scene, rows: list[int], steps: slice) -> np.ndarray:
+    """``[len(rows), T]`` bool: each vehicle of ``rows`` wrong-way at each step of ``steps``."""
+    a, b, direction = _segments(scene)
+    ab = b - a
+    length2 = np.maximum((ab**2).sum(-1), 1e-9)
+    pos, yaw, ok = scene.positions[:, steps], scene.yaws[:, steps], scene.valid[:, steps]
+    speed = np.zeros(ok.shape)
+    speed[:, 1:] = np.linalg.norm(np.diff(pos, axis=1), axis=-1) / scene.dt
+    out = np.zeros((len(rows), ok.shape[1]), bool)
+    for i, r in enumerate(rows):
+        moving = ok[r] & (speed[r] > MOVING)
+        if not moving.any():
+            continue
+        p = pos[r, moving]  # [M, 2]
+        u = np.clip(((p[:, None] - a) * ab).sum(-1) / length2, 0, 1)  # [M, S]
+        dist = np.linalg.norm(p[:, None] - (a + u[..., None] * ab), axis=-1)
+        turn = np.abs(wrap_angle(direction[None] - yaw[r, moving][:, None]))
+        own = np.where(turn < OWN_WAY, dist, np.inf).min(-1)
+        other = np.where(turn > OTHER_WAY, dist, np.inf).min(-1)
+        out[i, moving] = (own > FAR_FROM_OWN) & (other < ON_OTHER)
+    return out
+
+
+def new_collision_kinds(sim: Scene, factual: Scene) -> list[str]:
+    """Pairs of non-ego vehicles that overlap in ``sim``'s rollout but never in the log,
+    each named by the angle between their courses at the first overlapping step."""
+    veh = sim.vehicle_mask.copy()
+    veh[sim.ego_index] = False
+    overlaps = agent_overlaps(sim) & veh[None, :, None] & veh[None, None, :]
+    new = np.triu(overlaps.any(0) & ~agent_overlaps(factual).any(0), 1)
+    yaw = sim.yaws[:, rollout_slice(sim)]
+    kinds = []
+    for a, b in zip(*np.nonzero(new), strict=True):
+        t = int(np.argmax(overlaps[:, a, b]))
+        angle = abs(float(wrap_angle(yaw[a, t] - yaw[b, t])))
+        kinds.append(
+            "head-on" if angle > 5 * np.pi / 6 else "same way" if angle < np.pi / 6 else "crossing"
+        )
+    return kinds
+
+
+def count(scenes: list[Scene]) -> dict:
+    """Episodes with a vehicle wrong-way for ``MIN_STEPS`` or more, and the share of moving
+    vehicle-steps wrong-way, over ``scenes`` (each a rollout or a log)."""
+    episodes = steps = moving = 0
+    for scene in scenes:
+        sl = rollout_slice(scene)
+        rows = [r for r in range(scene.num_agents) if r != scene.ego_index]
+        rows = [r for r in rows if scene.vehicle_mask[r]]
+        ww = wrong_way_steps(scene, rows, sl)
+        episodes += bool((ww.sum(1) >= MIN_STEPS).any())
+        steps += int(ww.sum())
+        v = np.linalg.norm(np.diff(scene.positions[rows][:, sl], axis=1), axis=-1) / scene.dt
+        moving += int(((v > MOVING) & scene.valid[rows][:, sl][:, 1:]).sum())
+    lo, hi = wilson_interval(episodes, len(scenes))
+    return {
+        "episodes": len(scenes),
+        "episodes_wrong_way_1s": episodes,
+        "episodes_wrong_way_1s_ci95": [lo, hi],
+        "wrong_way_share_of_moving_steps": steps / max(moving, 1),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("data", help="stored scenes (a dataset directory or shard)")
+    ap.add_argument("--episodes", type=int, default=50)
+    ap.add_argument("--model", default="default")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    args = ap.parse_args()
+    settings = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
+    loop = ClosedLoop(load_model(args.model), SimConfig(**{"guidance": "none", **settings}))
+    scenes = loaded_scenes(args.data)[: args.episodes]
+    rollouts, logs, kinds, hit = [], [], [], 0
+    for i, scene in enumerate(scenes):
+        run_batch(loop, [scene], [i], [make_planner("log")])
+        rollouts.append(loop.scene(0))
+        logs.append(scene.time_slice(0, rollouts[-1].num_steps))
+        pairs = new_collision_kinds(rollouts[-1], logs[-1])
+        kinds += pairs
+        hit += bool(pairs)
+    collisions = {
+        "episodes_with_new_non_ego_collision": hit,
+        "ci95": list(wilson_interval(hit, len(scenes))),
+        "pairs": {k: kinds.count(k) for k in ("crossing", "same way", "head-on")},
+    }
+    print(
+        json.dumps(
+            {
+                "settings": settings,
+                "closed_loop": count(rollouts),
+                "log": count(logs),
+                "new_non_ego_collisions": collisions,
+            }
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()
