@@ -96,12 +96,18 @@ def count(scenes: list[Scene]) -> dict:
     """Episodes with a vehicle wrong-way for ``MIN_STEPS`` or more, and the share of moving
     vehicle-steps wrong-way, over ``scenes`` (each a rollout or a log)."""
     episodes = steps = moving = 0
+    turns = []  # course change [deg] over the 3 s before each wrong-way drive of MIN_STEPS
     for scene in scenes:
         sl = rollout_slice(scene)
         rows = [r for r in range(scene.num_agents) if r != scene.ego_index]
         rows = [r for r in rows if scene.vehicle_mask[r]]
         ww = wrong_way_steps(scene, rows, sl)
         episodes += bool((ww.sum(1) >= MIN_STEPS).any())
+        yaw = scene.yaws[:, sl]
+        for i in np.flatnonzero(ww.sum(1) >= MIN_STEPS):
+            t0 = int(np.argmax(ww[i]))
+            change = wrap_angle(yaw[rows[i], t0] - yaw[rows[i], max(t0 - 30, 0)])
+            turns.append(round(float(np.degrees(change)), 1))
         steps += int(ww.sum())
         v = np.linalg.norm(np.diff(scene.positions[rows][:, sl], axis=1), axis=-1) / scene.dt
         moving += int(((v > MOVING) & scene.valid[rows][:, sl][:, 1:]).sum())
@@ -111,6 +117,7 @@ def count(scenes: list[Scene]) -> dict:
         "episodes_wrong_way_1s": episodes,
         "episodes_wrong_way_1s_ci95": [lo, hi],
         "wrong_way_share_of_moving_steps": steps / max(moving, 1),
+        "course_change_in_the_3_s_before_each_wrong_way_drive_deg": turns,
     }
 
 
