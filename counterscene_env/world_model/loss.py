@@ -33,7 +33,8 @@ def training_loss(
         batch: training windows (with ``future``).
         generator: diffusion time steps, noise and graph dropout.
         off_lane_weight: weight of the off-lane term: the mean distance [m] by which the
-            rolled-out prediction lies outside every window lane strip, at the action
+            rolled-out prediction lies outside every window lane strip going its way (a lane
+            going against its course counts 10 m farther, since 27 Nov 2026), at the action
             tokens' steps where the log lies on one (``map_guidance.off_lane_loss``). The
             position error alone weighs a turn that goes wide onto the verge no more than
             one that goes wide along the lane; the open-loop off-road rate is mostly such
@@ -78,7 +79,9 @@ def training_loss(
     loss = action + tw["position"] * pos + tw["yaw"] * yaw + tw["speed"] * speed
     off_lane = torch.zeros((), device=device)
     if off_lane_weight > 0:
-        off_lane = off_lane_loss(model, batch, traj[..., :2], fut[..., :2], fut_ok)
+        # Against the lanes going the prediction's way (docs/world_model.md, "Wrong-way
+        # driving"): a turn that ends in the oncoming lane is off its lanes.
+        off_lane = off_lane_loss(model, batch, traj[..., :2], fut[..., :2], fut_ok, traj[..., 2])
         loss = loss + off_lane_weight * off_lane
     overlap = torch.zeros((), device=device)
     if overlap_weight > 0:

@@ -161,17 +161,26 @@ OFF_LANE_LOG_TOLERANCE = 0.25
 
 
 def off_lane_loss(
-    model, batch: dict[str, torch.Tensor], pred: torch.Tensor, log: torch.Tensor, ok: torch.Tensor
+    model,
+    batch: dict[str, torch.Tensor],
+    pred: torch.Tensor,
+    log: torch.Tensor,
+    ok: torch.Tensor,
+    course: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Mean off-lane distance [m] of ``pred [B, K, F, 2]`` where ``log [B, K, F, 2]`` is on
     a window lane, at the last step of each action token (``ok [B, K, F]``): the training
-    loss's off-lane term (``loss.training_loss``)."""
+    loss's off-lane term (``loss.training_loss``). ``course [B, K, F]`` rad, the prediction's
+    course: measured against the lanes going its way, as lane keeping measures it (a lane
+    going against it counts ``WRONG_WAY_PENALTY`` m farther); None: against every lane."""
     s = model.config.action_stride
     lanes = (batch["map"], batch["map_valid"], batch["map_widths"])
     pred, log, ok = pred[:, :, s - 1 :: s], log[:, :, s - 1 :: s], ok[:, :, s - 1 :: s]
+    if course is not None:
+        course = course[:, :, s - 1 :: s].detach()
     with torch.no_grad():
         ok = ok & (lane_excess(log, *lanes) <= OFF_LANE_LOG_TOLERANCE)
-    excess = lane_excess(pred, *lanes)
+    excess = lane_excess(pred, *lanes, headings=course)
     return (excess * ok).sum() / ok.float().sum().clamp(min=1)
 
 
