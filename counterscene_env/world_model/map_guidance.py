@@ -96,7 +96,7 @@ def lane_excess(
         h = half[n, pick][..., None].expand(*pick.shape, P - 1).reshape(*pick.shape[:2], S)
         ok = lanes_valid[n, pick][..., None].expand(*pick.shape, P - 1).reshape(h.shape)
         # The bound stays a lower bound: the penalty only adds.
-        extra = None if headings is None else _wrong_way(a, b, headings.reshape(N, -1)[..., None])
+        extra = None if headings is None else wrong_way(b - a, headings.reshape(N, -1)[..., None])
     excess = _segment_excess(q, a, b, h, ok, extra).min(dim=-1).values  # [N, Q]
     with torch.no_grad():
         left_out = bound.scatter(-1, pick, torch.inf).amin(-1)
@@ -116,10 +116,6 @@ def wrong_way(d: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
     goes against the course ``heading`` [rad] (broadcast), else 0."""
     same = d[..., 0] * torch.cos(heading) + d[..., 1] * torch.sin(heading) > SAME_WAY_COS
     return torch.where(same, 0.0, WRONG_WAY_PENALTY)
-
-
-def _wrong_way(a: torch.Tensor, b: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
-    return wrong_way(b - a, heading)
 
 
 def _segment_excess(
@@ -150,7 +146,7 @@ def _excess_all(
     a, b = a.reshape(N, 1, 1, M * S, 2), b.reshape(N, 1, 1, M * S, 2)
     half = (widths / 2)[:, :, None].expand(N, M, S).reshape(N, 1, 1, M * S)
     ok = lanes_valid[:, :, None].expand(N, M, S).reshape(N, 1, 1, M * S)
-    extra = None if headings is None else _wrong_way(a, b, headings[..., None])
+    extra = None if headings is None else wrong_way(b - a, headings[..., None])
     return _segment_excess(points, a, b, half, ok, extra).min(dim=-1).values
 
 
