@@ -105,4 +105,5 @@ def test_sb3_steps_and_reaches_the_envs_of_every_worker():
     assert venv.env_method("ego_truncated", indices=2) == [False]  # reset in the same step
     venv.set_attr("note", "hello", indices=[0, 2])
     assert venv.get_attr("note", indices=[0, 2]) == ["hello", "hello"]
+    assert venv.venv.metadata["render_fps"] == 2  # the policy frequency, as each env's
     venv.close()

@@ -436,11 +436,39 @@ def test_lane_excess_is_the_exact_distance_outside_the_nearest_lane_strip(lanes_
                 p = shapely.Point(points[n, a, t].detach().double().numpy())
                 want = min((max(line.distance(p) - h, 0.0) for line, h in strips), default=1e3)
                 assert float(got[n, a, t].detach()) == pytest.approx(want, abs=1e-4)
+    # With the cars' courses: each segment going against a course counts WRONG_WAY_PENALTY m
+    # farther (the brute force over every segment, numpy), and the search stays exact.
+    course = torch.rand(N, A, T, generator=g) * 6.3
+    way = map_guidance.lane_excess(points, lanes, valid, widths, course)
+    (way_grad,) = torch.autograd.grad(way.sum(), points)
+    a_, b_ = lanes[:, :, :-1].double().numpy(), lanes[:, :, 1:].double().numpy()
+    for n in range(N):
+        for a in range(A):
+            for t in range(T):
+                p = points[n, a, t].detach().double().numpy()
+                h = np.array([np.cos(float(course[n, a, t])), np.sin(float(course[n, a, t]))])
+                best = 1e3
+                for m in range(M):
+                    if not valid[n, m]:
+                        continue
+                    ab = b_[n, m] - a_[n, m]
+                    u = np.clip(((p - a_[n, m]) * ab).sum(-1) / (ab**2).sum(-1), 0, 1)
+                    d = np.linalg.norm(p - (a_[n, m] + u[:, None] * ab), axis=-1)
+                    extra = np.where(ab @ h > 0, 0.0, map_guidance.WRONG_WAY_PENALTY)
+                    best = min(
+                        best, float(np.maximum(d - widths[n, m].item() / 2 + extra, 0).min())
+                    )
+                assert float(way[n, a, t].detach()) == pytest.approx(best, abs=1e-4)
+    assert (way >= got - 1e-6).all()  # the penalty only adds
     monkeypatch.setattr(map_guidance, "NEAREST_PIECES", 10**6)  # every segment
     x = points.detach().requires_grad_(True)
     every = map_guidance.lane_excess(x, lanes, valid, widths)
     assert torch.equal(got, every)
     assert torch.equal(grad, torch.autograd.grad(every.sum(), x)[0])
+    x = points.detach().requires_grad_(True)
+    every = map_guidance.lane_excess(x, lanes, valid, widths, course)
+    assert torch.equal(way, every)
+    assert torch.equal(way_grad, torch.autograd.grad(every.sum(), x)[0])
 
 
 def test_lane_steering_turns_a_drifting_car_back_onto_the_road():
@@ -540,6 +568,44 @@ def test_a_plan_in_the_oncoming_lane_is_off_its_lanes_and_steered_back():
     any_way = torch.zeros(1, c.num_agents, dtype=torch.bool)
     any_way[0, 1] = True
     assert torch.equal(steer_onto_lanes(tiny, batch, x, 40, any_way), x)
+
+
+def test_the_realism_cost_and_the_training_term_count_the_oncoming_lane_as_off_the_lanes():
+    """The sample choice's realism cost and the training loss's off-lane term measure a car
+    in the oncoming lane by the distance to its own (2 m outside its strip here); on a road
+    whose lanes both go its way it is on a lane."""
+    from conftest import straight_road
+
+    from counterscene_env.sim.realism import plan_cost
+    from counterscene_env.world_model.map_guidance import off_lane_loss
+
+    tiny = _model(normalization=Normalization((0.0, 0.0), (1.4, 0.3)))
+    scene = _straight_scene((10.0, 10.0), (0.0, 4.0), (0.0, -15.0))
+    c = tiny.config
+    x = tiny.normalize(torch.zeros(1, c.num_agents, c.action_tokens, 2))  # straight on
+    for road, want in ((_two_way_road(), 2.0), (straight_road(2), 0.0)):
+        batch = _batch(tiny, [scene.replace(road=road)])
+        traj = tiny.rollout(x, tiny.current_state(batch))
+        lanes = (batch["map"], batch["map_valid"], batch["map_widths"])
+        valid = tiny.agent_mask(batch)
+        # Row 1's mean squared excess (2 m or more: its first points lie near the end of the
+        # window's crop of its own lane), averaged with row 0's 0 over the two cars on a lane.
+        cost = float(plan_cost(traj, valid, batch["extents"], lanes)[0])
+        assert want**2 / 2 - 1e-4 <= cost < (want + 0.5) ** 2 / 2 + 1e-4
+        # The training term: the log drives in its own lane (here: the same straight line
+        # as the prediction, but eastward on the road's lane), the prediction in row 1.
+        ok = valid[..., None].expand(traj.shape[:3])
+        log_course = torch.zeros_like(traj[..., 2])  # the logs go east too
+        term = off_lane_loss(tiny, batch, traj[..., :2], traj[..., :2], ok, traj[..., 2])
+        if want:  # the log is in the oncoming lane too: with its course, it is not on a lane
+            blind = off_lane_loss(tiny, batch, traj[..., :2], traj[..., :2], ok)
+            assert float(blind) == 0.0 < float(term)
+            gated = off_lane_loss(
+                tiny, batch, traj[..., :2], traj[..., :2], ok, traj[..., 2], log_course
+            )
+            assert float(gated) == pytest.approx(0.0, abs=1e-6)
+        else:
+            assert float(term) == pytest.approx(0.0, abs=1e-6)
 
 
 def _steering_cost(tiny, x, state, lanes_batch=None):

@@ -3,13 +3,13 @@ of the oncoming traffic (docs/world_model.md, "Wrong-way driving").
 
 A moving vehicle (over 1 m/s) is *wrong-way* at a step when its centre lies within 1 m of the
 centre line of a lane whose direction is more than 135 degrees from its course, and more than
-2 m from the centre line of every lane going its way (within 45 degrees). The tool runs the unguided closed loop with the log replayed
-for the ego on stored scenes, and counts the episodes in which a vehicle other than the ego is
-wrong-way for at least 1 s, and the share of moving vehicle-steps that are; the logs' own
-figures are given beside them (0 on generated roads). It also sorts the collisions between two
-vehicles other than the ego that the log does not have by how the two were heading at their
-first overlapping step: head-on (courses over 150 degrees apart), the same way (under 30) or
-crossing:
+2 m from the centre line of every lane going its way (within 45 degrees). The tool runs the
+unguided closed loop with the log replayed for the ego on stored scenes, and counts the
+episodes in which a vehicle other than the ego is wrong-way for at least 1 s without a break,
+and the share of moving vehicle-steps that are; the logs' own figures are given beside them
+(0 on generated roads). It also sorts the collisions between two vehicles other than the ego
+that the log does not have by how the two were heading at their first overlapping step:
+head-on (courses over 150 degrees apart), the same way (under 30) or crossing:
 
     python tools/wrong_way.py data/eval-intersection [--episodes 50] [--set KEY=VALUE ...]
 
@@ -42,6 +42,18 @@ ON_OTHER = 1.0  # m from a centre line going against it, at most
 MIN_STEPS = 10  # 1 s at 10 Hz: an episode counts when one vehicle is wrong-way this long
 
 
+def longest_run(flags: np.ndarray) -> tuple[int, int]:
+    """Length and first index of the longest run of True in ``flags [T]`` ((0, 0): none)."""
+    best, start, run = (0, 0), 0, 0
+    for t, f in enumerate(flags):
+        run = run + 1 if f else 0
+        if run == 1:
+            start = t
+        if run > best[0]:
+            best = (run, start)
+    return best
+
+
 def _segments(scene: Scene) -> tuple[np.ndarray, ...]:
     """Every lane segment of the scene's map: starts, ends ``[S, 2]`` m and directions
     ``[S]`` rad."""
@@ -57,8 +69,7 @@ def wrong_way_steps(scene: Scene, rows: list[int], steps: slice) -> np.ndarray:
     ab = b - a
     length2 = np.maximum((ab**2).sum(-1), 1e-9)
     pos, yaw, ok = scene.positions[:, steps], scene.yaws[:, steps], scene.valid[:, steps]
-    speed = np.zeros(ok.shape)
-    speed[:, 1:] = np.linalg.norm(np.diff(pos, axis=1), axis=-1) / scene.dt
+    speed = np.abs(scene.speeds[:, steps])
     out = np.zeros((len(rows), ok.shape[1]), bool)
     for i, r in enumerate(rows):
         moving = ok[r] & (speed[r] > MOVING)
@@ -102,15 +113,16 @@ def count(scenes: list[Scene]) -> dict:
         rows = [r for r in range(scene.num_agents) if r != scene.ego_index]
         rows = [r for r in rows if scene.vehicle_mask[r]]
         ww = wrong_way_steps(scene, rows, sl)
-        episodes += bool((ww.sum(1) >= MIN_STEPS).any())
-        yaw = scene.yaws[:, sl]
-        for i in np.flatnonzero(ww.sum(1) >= MIN_STEPS):
-            t0 = int(np.argmax(ww[i]))
-            change = wrap_angle(yaw[rows[i], t0] - yaw[rows[i], max(t0 - 30, 0)])
-            turns.append(round(float(np.degrees(change)), 1))
+        drives = [longest_run(w) for w in ww]
+        episodes += any(n >= MIN_STEPS for n, _ in drives)
+        for r, (n, t0) in zip(rows, drives, strict=True):
+            if n >= MIN_STEPS:  # the course over the 3 s (history included) before it began
+                t = sl.start + t0
+                change = wrap_angle(scene.yaws[r, t] - scene.yaws[r, max(t - 30, 0)])
+                turns.append(round(float(np.degrees(change)), 1))
         steps += int(ww.sum())
-        v = np.linalg.norm(np.diff(scene.positions[rows][:, sl], axis=1), axis=-1) / scene.dt
-        moving += int(((v > MOVING) & scene.valid[rows][:, sl][:, 1:]).sum())
+        v = np.abs(scene.speeds[rows][:, sl])
+        moving += int(((v > MOVING) & scene.valid[rows][:, sl]).sum())
     lo, hi = wilson_interval(episodes, len(scenes))
     return {
         "episodes": len(scenes),

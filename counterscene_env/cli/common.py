@@ -38,7 +38,6 @@ def int_at_least(low: int):
             raise argparse.ArgumentTypeError(f"must be >= {low}, got {value}")
         return value
 
-    parse.__name__ = "int"  # argparse's "invalid int value" wording for non-numbers
     return parse
 
 

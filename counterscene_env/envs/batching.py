@@ -52,6 +52,8 @@ def expand_seeds(seed: int | Sequence[int | None] | None, n: int) -> list[int | 
         return [None] * n
     if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
         return [int(seed) + i for i in range(n)]
+    if isinstance(seed, np.ndarray) and seed.ndim == 1:  # e.g. rng.integers(..., size=n)
+        seed = seed.tolist()
     if isinstance(seed, Sequence) and not isinstance(seed, str):
         if len(seed) != n:
             raise ValueError(f"seed needs one entry per env ({n}), got {seed!r}")
@@ -80,6 +82,8 @@ def per_env_values(values: Any, key: str, n: int) -> list:
     """``options[key]``, a list of one value per env (None: None for every env)."""
     if values is None:
         return [None] * n
+    if isinstance(values, np.ndarray) and values.ndim == 1:  # numpy's ints as ints
+        values = values.tolist()
     if not isinstance(values, Sequence) or len(values) != n:
         raise ValueError(f"options[{key!r}] must be a list of {n} (None: default)")
     return list(values)

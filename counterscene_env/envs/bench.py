@@ -32,13 +32,16 @@ def bench_env(
 
     from counterscene_env.envs.single_agent import CounterSceneEnv
 
+    # Everything is checked before the process-wide thread count changes.
     check_int("steps", steps, ge=1)
     check_int("seed", seed, ge=0)
     if threads is not None:
-        torch.set_num_threads(check_int("threads", threads, ge=1))
-    env = CounterSceneEnv(config=config)
+        check_int("threads", threads, ge=1)
     if policy not in ("random", "hold"):
         raise ValueError(f"policy must be 'random' or 'hold', got {policy!r}")
+    env = CounterSceneEnv(config=config)
+    if threads is not None:
+        torch.set_num_threads(threads)
     if policy == "hold":
         from gymnasium import spaces
 

@@ -12,6 +12,8 @@ import copy
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
+
 from counterscene_env.config import check_bool, check_int, check_real, defaults, describe_value
 from counterscene_env.envs.egos import pick_egos
 from counterscene_env.envs.spaces import KINEMATIC_FEATURES
@@ -190,7 +192,7 @@ def validate(config: Mapping[str, Any], env: Any = None) -> None:
     if multi[1]:
         act = _check_type_dict("action.action_config", act.get("action_config"), ACTION_TYPES)
     _check_observation(obs)
-    _check_action(act)
+    _check_action(act, "action.action_config" if multi[1] else "action")
     if obs["type"] == "TimeToCollision" and act["type"] != "DiscreteMetaAction":
         raise ValueError(
             "the TimeToCollision observation needs the DiscreteMetaAction action type "
@@ -231,6 +233,8 @@ def _check_scalars(config: Mapping[str, Any]) -> None:
 
 
 def _check_pair(key: str, value: Any) -> tuple[float, float]:
+    if isinstance(value, np.ndarray) and value.ndim == 1:
+        value = value.tolist()
     if not isinstance(value, list | tuple) or len(value) != 2:
         raise ValueError(f"{key} must be a list of two numbers, got {value!r}")
     return check_real(f"{key}[0]", value[0]), check_real(f"{key}[1]", value[1])
@@ -285,22 +289,25 @@ def _check_range_pair(key: str, value: Any) -> None:
         raise ValueError(f"{key} must be [low, high] with low < high, got {list(value)}")
 
 
-def _check_action(act: Mapping[str, Any]) -> None:
-    """The ranges and speeds inside an action config, which highway-env takes on trust (a
-    reversed range flips the controls; an empty ``target_speeds`` fails at the first step)."""
+def _check_action(act: Mapping[str, Any], name: str) -> None:
+    """The ranges and speeds inside action config ``name``, which highway-env takes on trust
+    (a reversed range flips the controls; an empty ``target_speeds`` fails at the first
+    step)."""
     for key in ("acceleration_range", "steering_range", "speed_range"):
         if act.get(key) is not None:
-            _check_range_pair(f"action.{key}", act[key])
-    if "target_speeds" in act:
+            _check_range_pair(f"{name}.{key}", act[key])
+    if act.get("target_speeds") is not None:
         speeds = act["target_speeds"]
+        if isinstance(speeds, np.ndarray) and speeds.ndim == 1:
+            speeds = speeds.tolist()
         if not isinstance(speeds, list | tuple) or not speeds:
             raise ValueError(
-                f"action.target_speeds must be a non-empty list of speeds in m/s, got {speeds!r}"
+                f"{name}.target_speeds must be a non-empty list of speeds in m/s, got {speeds!r}"
             )
         for i, v in enumerate(speeds):
-            check_real(f"action.target_speeds[{i}]", v, ge=0)
+            check_real(f"{name}.target_speeds[{i}]", v, ge=0)
     if "actions_per_axis" in act:
-        check_int("action.actions_per_axis", act["actions_per_axis"], ge=1)
+        check_int(f"{name}.actions_per_axis", act["actions_per_axis"], ge=1)
 
 
 def _build_on_scratch(env: Any, config: Mapping[str, Any]) -> None:

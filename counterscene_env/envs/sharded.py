@@ -40,7 +40,6 @@ from counterscene_env.envs.batching import (
     reset_mask,
     unbatch_info,
 )
-from counterscene_env.envs.single_agent import CounterSceneEnv
 from counterscene_env.envs.vector import CounterSceneVectorEnv
 
 #: Errors a worker hands back as they are: bad input, named by its key or env.
@@ -116,9 +115,9 @@ class ShardedVectorEnv(VectorEnv):
         except BaseException:
             self._stop()
             raise
-        self.single_observation_space, self.single_action_space, mode = spaces
+        self.single_observation_space, self.single_action_space, mode, fps = spaces
         self.autoreset_mode = mode
-        fps = {**CounterSceneEnv.default_config(), **(config or {})}["policy_frequency"]
+        # One frame per policy step, as the workers' envs (``render_fps``).
         self.metadata = {**self.metadata, "autoreset_mode": mode, "render_fps": fps}
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
@@ -171,6 +170,9 @@ class ShardedVectorEnv(VectorEnv):
         for (w, call), (obs, shard_infos) in zip(calls.items(), results, strict=True):
             self._unpack(w, obs, shard_infos, infos, call["options"].get("reset_mask"))
         self._started = True
+        if "config" in options:  # a new policy_frequency plays at its own speed
+            self._send(0, "get_attr", "metadata")
+            self.metadata["render_fps"] = self._gather([0])[0][0]["render_fps"]
         return self._batch_obs(), infos
 
     def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict]:
@@ -322,7 +324,15 @@ def _serve(pipe, num_envs: int, first: int, kwargs: dict) -> None:
         venv = CounterSceneVectorEnv(num_envs, **kwargs)
         venv.first_index = first
         pipe.send(
-            ("ok", (venv.single_observation_space, venv.single_action_space, venv.autoreset_mode))
+            (
+                "ok",
+                (
+                    venv.single_observation_space,
+                    venv.single_action_space,
+                    venv.autoreset_mode,
+                    venv.metadata["render_fps"],
+                ),
+            )
         )
     except Exception as exc:  # handed to the parent, which raises it
         pipe.send(_failure(exc))

@@ -148,13 +148,13 @@ class CounterSceneEnv(AbstractEnv):
         self._constructing = True
         super().__init__(config, render_mode)
         self._constructing = False
-        self.update_metadata()  # render_fps from the start (RecordVideo reads it on wrapping)
 
     def update_metadata(self, video_real_time_ratio: int = 1) -> None:
         """This instance's ``render_fps``: one frame per policy step (per simulation step
         while a ``RecordVideo`` wrapper records the intermediate frames), in real time."""
-        recording = getattr(self, "_record_video_wrapper", None)  # unset while constructing
-        fps = self.config["simulation_frequency" if recording else "policy_frequency"]
+        fps = self.config[
+            "simulation_frequency" if self._record_video_wrapper else "policy_frequency"
+        ]
         self.metadata = {**type(self).metadata, "render_fps": video_real_time_ratio * fps}
 
     # ------------------------------------------------------------------ configuration
@@ -173,7 +173,7 @@ class CounterSceneEnv(AbstractEnv):
         candidate, source = self._prepare(config)
         super().configure(candidate)
         self._source = source
-        self.update_metadata()
+        self.update_metadata()  # render_fps from construction on (RecordVideo reads it early)
 
     def check_config(self, config: Mapping | None) -> SimConfig:
         """Raise as ``configure(config)`` would, changing nothing; the closed-loop settings

@@ -258,7 +258,8 @@ class CounterSceneVectorEnv(VectorEnv):
         try:
             return self.envs[i].check_step(action)
         except (TypeError, ValueError) as exc:
-            raise type(exc)(f"env {i + self.first_index}: {exc}") from None
+            kind = TypeError if isinstance(exc, TypeError) else ValueError
+            raise kind(f"env {i + self.first_index}: {exc}") from exc
 
     def _check_actions(self, actions: Any) -> tuple[list, np.ndarray]:
         """The actions, one per env, and the envs due an autoreset (their action is ignored);

@@ -89,9 +89,10 @@ class ClosedLoop:
     """
 
     def __init__(self, model: WorldModel, config: SimConfig | None = None) -> None:
+        config = config or SimConfig()
+        config.check_model(model.config.num_train_timesteps)  # before anything changes
         self.model = model.eval()
-        self.config = config or SimConfig()
-        self.config.check_model(model.config.num_train_timesteps)
+        self.config = config
         preset = guidance_preset(self.config.guidance)
         self.guidance = dataclasses.replace(
             preset,

@@ -2,8 +2,8 @@
 
 The closed loop draws several samples per replan and keeps the one that best serves the
 guidance; this cost is the other half of that choice, for everyone but the adversary: a sample
-whose agents drive into each other or off the road is a worse world, whatever the guidance
-wants. Like the guidance loss it reads only the rolled-out positions of the samples, so it
+whose agents drive into each other, off the road or into the oncoming lane is a worse world,
+whatever the guidance wants. Like the guidance loss it reads only the rolled-out positions of the samples, so it
 chooses among the model's own futures and never edits one.
 
 Shapes: N samples (scenes x samples), K window agents, F future steps.
@@ -43,7 +43,8 @@ def plan_cost(
 
     Returns:
         Number of overlapping agent pairs summed over the steps, plus the mean squared
-        off-lane distance [m^2] of agents that start on a lane.
+        off-lane distance [m^2] of agents that start on a lane (from the lanes going each
+        one's way: ``lane_excess`` with the rollout's course).
     """
     xy = trajectory[:, :, :steps, :2]
     keep = valid if exclude is None else valid & ~exclude

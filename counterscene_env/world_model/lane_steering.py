@@ -1,5 +1,7 @@
 """Final-step lane keeping: the finished samples' yaw rates corrected so that every on-lane
-agent stays inside a lane strip of its window's map (``ModelConfig.lane_steering``, on in both
+agent stays inside a strip of a lane going its way (a lane going against its course counts
+``map_guidance.WRONG_WAY_PENALTY`` m farther; docs/world_model.md, "Wrong-way driving") of its
+window's map (``ModelConfig.lane_steering``, on in both
 presets; paper hyper-parameter "final-step guidance", restricted to steering; measured in
 docs/world_model.md).
 
@@ -34,10 +36,11 @@ def steer_onto_lanes(
     any_way: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Correct the *yaw-rate* tokens of finished samples so that every on-lane agent's
-    rolled-out centre stays inside a lane strip of the window's map.
+    rolled-out centre stays inside a strip of a lane of the window's map going its way.
 
     ``iterations`` Adam steps (``STEER_LR``) minimise, per agent, the mean squared distance
-    by which its centre lies outside the nearest candidate strip narrowed by ``LANE_MARGIN``,
+    by which its centre lies outside the nearest candidate strip narrowed by ``LANE_MARGIN``
+    (a candidate going against the plan's course counted ``WRONG_WAY_PENALTY`` m farther),
     plus ``STEER_PRIOR`` x the squared change of its tokens (:class:`SteeringCost`).
     Acceleration is never touched: braking is the cheapest way to stay on a lane (a car that
     stops stays where it is), and it is not what an under-turning sample gets wrong. Each

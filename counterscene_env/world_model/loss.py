@@ -34,7 +34,8 @@ def training_loss(
         generator: diffusion time steps, noise and graph dropout.
         off_lane_weight: weight of the off-lane term: the mean distance [m] by which the
             rolled-out prediction lies outside every window lane strip going its way (a lane
-            going against its course counts 10 m farther, since 27 Nov 2026), at the action
+            going against its course counts ``map_guidance.WRONG_WAY_PENALTY`` m farther,
+            since 27 Nov 2026), at the action
             tokens' steps where the log lies on one (``map_guidance.off_lane_loss``). The
             position error alone weighs a turn that goes wide onto the verge no more than
             one that goes wide along the lane; the open-loop off-road rate is mostly such
@@ -81,7 +82,9 @@ def training_loss(
     if off_lane_weight > 0:
         # Against the lanes going the prediction's way (docs/world_model.md, "Wrong-way
         # driving"): a turn that ends in the oncoming lane is off its lanes.
-        off_lane = off_lane_loss(model, batch, traj[..., :2], fut[..., :2], fut_ok, traj[..., 2])
+        off_lane = off_lane_loss(
+            model, batch, traj[..., :2], fut[..., :2], fut_ok, traj[..., 2], fut[..., 2]
+        )
         loss = loss + off_lane_weight * off_lane
     overlap = torch.zeros((), device=device)
     if overlap_weight > 0:

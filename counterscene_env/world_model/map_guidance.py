@@ -1,15 +1,18 @@
 """The off-lane distance, and keeping sampled trajectories on the lanes while sampling (paper
 hyper-parameter "map guidance").
 
-- ``lane_excess``: how far points lie outside every lane strip, the measure of the training
-  loss's off-lane term, the realism cost and the guidance's off-lane term.
+- ``lane_excess``: how far points lie outside every lane strip (where a car's course is given,
+  every strip of a lane going its way; a lane going against it counts
+  :data:`WRONG_WAY_PENALTY` m farther), the measure of the training loss's off-lane term, the
+  realism cost, final-step lane keeping and the guidance's off-lane term.
 - ``make_map_guidance``: like the public CounterScene/CCDiff code, a guidance hook that moves
   every on-lane agent's posterior mean down the gradient of its off-lane loss while sampling
   (``ModelConfig.map_guidance``, off by default: it costs more accuracy than it buys; measured
   in docs/world_model.md). Final-step lane keeping is ``lane_steering.py``.
 
 The off-lane loss is the distance by which a predicted centre lies outside the nearest lane
-strip of the window's map (``|p - segment| - width / 2``, hinged at 0). Only agents on a lane
+strip of the window's map (``|p - segment| - width / 2``, hinged at 0; plus the wrong-way
+penalty for a lane going against the car's course, where that is known). Only agents on a lane
 of the window at "now" are guided or steered: a car parked on the verge, or one whose road the
 window does not hold, must not be pulled onto someone else's lane.
 """
@@ -163,19 +166,26 @@ def off_lane_loss(
     log: torch.Tensor,
     ok: torch.Tensor,
     course: torch.Tensor | None = None,
+    log_course: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Mean off-lane distance [m] of ``pred [B, K, F, 2]`` where ``log [B, K, F, 2]`` is on
     a window lane, at the last step of each action token (``ok [B, K, F]``): the training
-    loss's off-lane term (``loss.training_loss``). ``course [B, K, F]`` rad, the prediction's
-    course: measured against the lanes going its way, as lane keeping measures it (a lane
-    going against it counts ``WRONG_WAY_PENALTY`` m farther); None: against every lane."""
+    loss's off-lane term (``loss.training_loss``). With the courses ``course [B, K, F]`` of
+    the prediction and ``log_course [B, K, F]`` of the log (rad), both are measured against
+    the lanes going their way, as lane keeping measures it (a lane going against a course
+    counts :data:`WRONG_WAY_PENALTY` m farther): where the log itself drives against its
+    lane (an overtake, a map error), the prediction is not pushed away from it. None:
+    against every lane."""
     s = model.config.action_stride
     lanes = (batch["map"], batch["map_valid"], batch["map_widths"])
     pred, log, ok = pred[:, :, s - 1 :: s], log[:, :, s - 1 :: s], ok[:, :, s - 1 :: s]
     if course is not None:
         course = course[:, :, s - 1 :: s].detach()
+    if log_course is not None:
+        log_course = log_course[:, :, s - 1 :: s]
     with torch.no_grad():
-        ok = ok & (lane_excess(log, *lanes) <= OFF_LANE_LOG_TOLERANCE)
+        on_lane = lane_excess(log, *lanes, headings=log_course) <= OFF_LANE_LOG_TOLERANCE
+        ok = ok & on_lane
     excess = lane_excess(pred, *lanes, headings=course)
     return (excess * ok).sum() / ok.float().sum().clamp(min=1)
 
@@ -208,8 +218,9 @@ def make_map_guidance(model, batch: dict[str, torch.Tensor], num_samples: int, s
             return mean
         with torch.enable_grad():
             x = mean.detach().requires_grad_(True)
-            xy = model.rollout(x, state)[..., :2]
-            loss = (lane_excess(xy, lanes, lanes_ok, widths) ** 2).mean(-1)  # [N, K]
+            traj = model.rollout(x, state)
+            course = traj[..., 2].detach()  # against the lanes going each agent's way
+            loss = (lane_excess(traj[..., :2], lanes, lanes_ok, widths, course) ** 2).mean(-1)
             (grad,) = torch.autograd.grad((loss * guided).sum(), x)
         delta = (-step_size * grad).clamp(-sigma, sigma)
         return mean + torch.where(guided[..., None, None], delta, 0.0)
