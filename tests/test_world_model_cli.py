@@ -415,6 +415,7 @@ def test_init_may_change_which_lanes_the_window_holds(dataset, tmp_path):
             "0",
             "--off-lane-weight",
             "1",
+            "--off-lane-by-course",
             "--overlap-weight",
             "1",
         )
@@ -431,6 +432,7 @@ def test_init_may_change_which_lanes_the_window_holds(dataset, tmp_path):
     record = json.loads(_log(fine)[-1])
     assert math.isfinite(record["off_lane"]) and record["off_lane"] >= 0
     assert math.isfinite(record["overlap"]) and record["overlap"] >= 0
+    assert model.training_info["off_lane_by_course"] is True  # recorded with the run
 
 
 @pytest.mark.slow

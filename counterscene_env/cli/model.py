@@ -63,6 +63,12 @@ def add_train(sub) -> None:
         "(default 0: left out; the shipped model used 1.0)",
     )
     tr.add_argument(
+        "--off-lane-by-course",
+        action="store_true",
+        help="measure the off-lane term against the lanes going the prediction's way (a lane "
+        "going against it counts 10 m farther, as in lane keeping)",
+    )
+    tr.add_argument(
         "--overlap-weight",
         type=float,
         default=0.0,
@@ -132,6 +138,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         init=args.init,
         off_lane_weight=args.off_lane_weight,
         overlap_weight=args.overlap_weight,
+        off_lane_by_course=args.off_lane_by_course,
         min_future_steps=args.min_future,
         agent_centred=tuple(args.agent_centred),
         data_weights=None if args.data_weights is None else tuple(args.data_weights),

@@ -26,6 +26,7 @@ def training_loss(
     generator: torch.Generator | None = None,
     off_lane_weight: float = 0.0,
     overlap_weight: float = 0.0,
+    off_lane_by_course: bool = False,
 ) -> dict[str, torch.Tensor]:
     """Training loss of one batch: action MSE plus rolled-out trajectory errors.
 
@@ -33,9 +34,7 @@ def training_loss(
         batch: training windows (with ``future``).
         generator: diffusion time steps, noise and graph dropout.
         off_lane_weight: weight of the off-lane term: the mean distance [m] by which the
-            rolled-out prediction lies outside every window lane strip going its way (a lane
-            going against its course counts ``map_guidance.WRONG_WAY_PENALTY`` m farther,
-            since 27 Nov 2026), at the action
+            rolled-out prediction lies outside every window lane strip, at the action
             tokens' steps where the log lies on one (``map_guidance.off_lane_loss``). The
             position error alone weighs a turn that goes wide onto the verge no more than
             one that goes wide along the lane; the open-loop off-road rate is mostly such
@@ -44,6 +43,12 @@ def training_loss(
             rolled-out prediction's boxes run into each other where the log's do not
             (``overlap.overlap_loss``). Every agent's error is otherwise scored alone, so
             nothing teaches the joint sample that two cars cannot share a place.
+        off_lane_by_course: measure the off-lane term against the lanes going the
+            prediction's way (and the log's gate by the log's course), as lane keeping
+            measures it: a lane going against a course counts
+            ``map_guidance.WRONG_WAY_PENALTY`` m farther. Off by default: a 1,500-step
+            fine-tune with it did not lower the network's own wrong-way driving
+            (docs/world_model.md, "Wrong-way driving").
 
     Returns a dict with ``loss`` (to minimise) and its terms ``action``, ``position`` [m],
     ``yaw`` [rad], ``speed`` [m/s], ``off_lane`` [m], ``overlap`` [m] (detached).
@@ -80,11 +85,8 @@ def training_loss(
     loss = action + tw["position"] * pos + tw["yaw"] * yaw + tw["speed"] * speed
     off_lane = torch.zeros((), device=device)
     if off_lane_weight > 0:
-        # Against the lanes going the prediction's way (docs/world_model.md, "Wrong-way
-        # driving"): a turn that ends in the oncoming lane is off its lanes.
-        off_lane = off_lane_loss(
-            model, batch, traj[..., :2], fut[..., :2], fut_ok, traj[..., 2], fut[..., 2]
-        )
+        courses = (traj[..., 2], fut[..., 2]) if off_lane_by_course else (None, None)
+        off_lane = off_lane_loss(model, batch, traj[..., :2], fut[..., :2], fut_ok, *courses)
         loss = loss + off_lane_weight * off_lane
     overlap = torch.zeros((), device=device)
     if overlap_weight > 0:

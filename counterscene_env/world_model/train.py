@@ -241,7 +241,13 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         "torch": torch.__version__,
     }
     # What shaped the loss and the windows, where set (a shipped model's record of its run).
-    for key in ("off_lane_weight", "overlap_weight", "min_future_steps", "parked_cars"):
+    for key in (
+        "off_lane_weight",
+        "off_lane_by_course",
+        "overlap_weight",
+        "min_future_steps",
+        "parked_cars",
+    ):
         if getattr(cfg, key):
             info[key] = getattr(cfg, key)
     if cfg.init is not None:  # provenance of a fine-tune: where it started
@@ -270,7 +276,9 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         if cfg.parked_cars > 0:  # a stream of its own, seeded by the step: resumes exactly
             g = torch.Generator().manual_seed(PARKED_STREAM + cfg.seed * 100003 + step)
             batch = add_parked_cars(batch, cfg.parked_cars, g)
-        losses = training_loss(model, batch, noise, cfg.off_lane_weight, cfg.overlap_weight)
+        losses = training_loss(
+            model, batch, noise, cfg.off_lane_weight, cfg.overlap_weight, cfg.off_lane_by_course
+        )
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)

@@ -47,6 +47,8 @@ class TrainConfig:
             it out.
         overlap_weight: weight of the loss's overlap term (``loss.training_loss``: predicted
             boxes running into each other); 0 leaves it out.
+        off_lane_by_course: the off-lane term measured against the lanes going each
+            prediction's way (``loss.training_loss``); off by default.
         min_future_steps: future frames a window needs inside its log (None: the model's whole
             horizon); fewer admits the ends of short real logs, their missing frames masked.
         agent_centred: those of ``data`` whose windows centre on every vehicle in turn
@@ -78,6 +80,7 @@ class TrainConfig:
     init: str | None = None
     off_lane_weight: float = bounded(0.0, ge=0)
     overlap_weight: float = bounded(0.0, ge=0)
+    off_lane_by_course: bool = False
     min_future_steps: int | None = bounded(None, ge=1)
     agent_centred: tuple[str, ...] = ()
     data_weights: tuple[float, ...] | None = None
@@ -142,6 +145,8 @@ def plain_settings(cfg: TrainConfig) -> dict[str, Any]:
         d.pop("off_lane_weight")  # and so do runs from before the off-lane term
     if d["overlap_weight"] == 0:
         d.pop("overlap_weight")  # and before the overlap term
+    if not d["off_lane_by_course"]:
+        d.pop("off_lane_by_course")  # and before the off-lane term by course
     if d["parked_cars"] == 0:
         d.pop("parked_cars")  # and before parked cars
     d["steps"] = None  # a longer --steps continues the same run
