@@ -33,6 +33,8 @@ def ego_ids(env) -> list[str]:
 
 
 @pytest.mark.slow
+# PettingZoo's test resets with options={"options": 1}, which the env names in a warning.
+@pytest.mark.filterwarnings("ignore:reset ignores the unknown options")
 def test_pettingzoo_parallel_api_test_passes():
     """PettingZoo's own API test, over more cycles than an episode has (agents finish)."""
     env = counterscene_env.parallel_env(num_egos=2, config=SHORT)
