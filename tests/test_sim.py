@@ -322,6 +322,30 @@ def test_the_final_guidance_step_moves_only_a_guided_adversary(model, guidance):
         assert not np.allclose(with_step, without, atol=1e-3)
 
 
+@pytest.mark.parametrize("guidance", ["none", "full"])
+def test_lane_keeping_lets_only_a_guided_adversary_keep_to_any_lane(model, guidance, monkeypatch):
+    """The guided adversary's counterfactual crosses into the ego's lane, so lane keeping
+    exempts it from the lanes' direction (``any_way``); unguided, it is ordinary traffic."""
+    seen = []
+    sample = type(model).sample
+
+    def spy(self, batch, *args, any_way=None, **kwargs):
+        seen.append(None if any_way is None else any_way.clone())
+        return sample(self, batch, *args, any_way=any_way, **kwargs)
+
+    monkeypatch.setattr(type(model), "sample", spy)
+    loop = ClosedLoop(model, SimConfig(duration=9.0, guidance=guidance))
+    assert loop.reset([crossing_scene()], [0])[0]["adversary"] == "a1"
+    for _ in range(10):  # two more replans
+        loop.step(np.zeros((1, 2)))
+    assert seen and all(m is not None for m in seen)
+    rows = [m.nonzero().tolist() for m in seen]  # [window, agent slot] pairs exempted
+    if guidance == "none":
+        assert all(r == [] for r in rows)
+    else:  # one agent, the adversary's slot, in every replan
+        assert all(len(r) == 1 for r in rows)
+
+
 def platoon_scene(T=90, c=30):
     """:func:`rear_scene` with a third car at 3 m/s from x = 45, between the follower (row 1,
     the adversary) and the ego (row 0): the follower cannot reach the ego without hitting it."""
