@@ -9,6 +9,7 @@ default (:data:`SIM_KEYS`; one source, docs/design.md, "Configuration").
 from __future__ import annotations
 
 import copy
+import warnings
 from collections.abc import Mapping
 from typing import Any
 
@@ -142,6 +143,26 @@ def prepare(
     windows = max(sim.max_windows, candidate["controlled_vehicles"])
     check_replan_memory(model.config, sim.num_samples, windows, sim.memory_limit_gb)
     return candidate, source
+
+
+#: The keys of ``reset(options=...)`` (``CounterSceneEnv.reset``).
+RESET_OPTIONS = ("config", "scene", "episode_seed")
+
+
+def reset_options(options: Any) -> dict:
+    """``reset``'s ``options`` as a new dict (None: empty); anything but a dict is refused,
+    and unknown keys are named in a warning (a misspelt option would otherwise silently run
+    another episode; PettingZoo's API test sends one)."""
+    if options is not None and not isinstance(options, Mapping):
+        raise TypeError(f"options must be a dict or None, got {options!r}")
+    options = dict(options or {})
+    unknown = sorted(set(options) - set(RESET_OPTIONS), key=str)
+    if unknown:
+        warnings.warn(
+            f"reset ignores the unknown options {unknown}; known: {list(RESET_OPTIONS)}",
+            stacklevel=3,
+        )
+    return options
 
 
 def check_episode_inputs(

@@ -1,5 +1,6 @@
 """What one policy step means for an ego: its info over the step's frames, its reward terms
-and whether it ends the ego's episode (``CounterScene-v0``'s spec sheet, ``envs/single_agent.py``).
+and whether it ends the ego's episode (``CounterScene-v0``'s spec sheet, ``envs/single_agent.py``);
+and the episode's metric summary for an ego, given at its end.
 """
 
 from __future__ import annotations
@@ -8,6 +9,9 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 from highway_env import utils
+
+from counterscene_env import metrics
+from counterscene_env.scene.core import Scene
 
 #: Info flags that count if they happen at any frame of the policy step.
 ANY_FRAME = ("collision", "hard_braking", "off_road")
@@ -51,3 +55,12 @@ def ends_episode(info: Mapping, config: Mapping) -> bool:
         (config["terminate_on_collision"] and info["collision"])
         or (config["terminate_on_off_road"] and info["off_road"])
     )
+
+
+def episode_summary(sim: Scene, factual: Scene, ego: int, adversary: int | None) -> dict:
+    """Ego row ``ego``'s metric summary (``metrics.evaluate_scene``) of the simulated episode
+    ``sim`` so far, against the log ``factual`` over the same steps; ``adversary``: its row."""
+    if ego != sim.ego_index:
+        sim = sim.replace(ego_index=ego)
+    factual = factual.time_slice(0, sim.num_steps).replace(ego_index=ego)
+    return metrics.evaluate_scene(sim, factual, adversary=adversary)

@@ -11,7 +11,6 @@ docstring of :class:`CounterSceneEnv` and ``docs/environment.md``.
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -20,17 +19,23 @@ from gymnasium import spaces
 from highway_env.envs.common.abstract import AbstractEnv
 from highway_env.vehicle.kinematics import Vehicle
 
-from counterscene_env import metrics
 from counterscene_env.envs.config import (
     UNUSED_BASE_KEYS,
     check_episode_inputs,
     counterscene_defaults,
     prepare,
+    reset_options,
     sim_settings,
 )
 from counterscene_env.envs.egos import pick_egos
 from counterscene_env.envs.mirror import Mirror, build_mirror, sync_mirror
-from counterscene_env.envs.outcome import ends_episode, reward_terms, step_info, weighted_reward
+from counterscene_env.envs.outcome import (
+    ends_episode,
+    episode_summary,
+    reward_terms,
+    step_info,
+    weighted_reward,
+)
 from counterscene_env.envs.render import EpisodeView, render_frame, view_of
 from counterscene_env.envs.spaces import (
     as_highway_action,
@@ -45,9 +50,6 @@ from counterscene_env.scene.sources import SceneSource
 from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.sim.state import Episode
 from counterscene_env.world_model.checkpoint import shared_model
-
-#: The keys of ``reset(options=...)`` (``CounterSceneEnv.reset``).
-RESET_OPTIONS = ("config", "scene", "episode_seed")
 
 
 def draw_episode_seed(rng: np.random.Generator) -> int:
@@ -232,9 +234,8 @@ class CounterSceneEnv(AbstractEnv):
         ``"scene"``: a :class:`Scene` to run instead of drawing one; ``"episode_seed"``: the
         closed loop's seed (world-model noise, adversary tie-breaks) instead of one drawn from
         the env's generator; ``counterscene stress`` passes its episode seeds so every planner
-        meets the same traffic randomness. Other keys are ignored with a warning (a misspelt
-        option would otherwise silently run another episode; PettingZoo's API test sends
-        one). Bad input is refused before anything changes.
+        meets the same traffic randomness. Other keys are ignored with a warning
+        (``envs.config.reset_options``). Bad input is refused before anything changes.
         """
         if self._constructing:
             # Stand-in egos (no road) give highway-env's per-ego spaces their length.
@@ -242,15 +243,7 @@ class CounterSceneEnv(AbstractEnv):
             self.controlled_vehicles = [Vehicle(None, np.zeros(2)) for _ in range(n)]
             self.define_spaces()
             return None, {}
-        if options is not None and not isinstance(options, Mapping):
-            raise TypeError(f"options must be a dict or None, got {options!r}")
-        options = dict(options or {})
-        unknown = sorted(set(options) - set(RESET_OPTIONS), key=str)
-        if unknown:
-            warnings.warn(
-                f"reset ignores the unknown options {unknown}; known: {list(RESET_OPTIONS)}",
-                stacklevel=2,
-            )
+        options = reset_options(options)
         candidate, source = self._prepare(options.pop("config", None))
         egos = candidate["controlled_vehicles"]
         check_episode_inputs(seed, options.get("scene"), options.get("episode_seed"), egos)
@@ -467,15 +460,9 @@ class CounterSceneEnv(AbstractEnv):
 
     def episode_metrics(self, k: int = 0) -> dict:
         """Ego ``k``'s metric summary of the episode so far (metrics.evaluate_scene)."""
-        sim = self.loop.scene(self.slot)
-        e = self.egos[k]
-        if e != sim.ego_index:
-            sim = sim.replace(ego_index=e)
-        factual = self.scene.time_slice(0, sim.num_steps).replace(ego_index=e)
-        adversary = self.loop.selection(self.slot, k).conflict
-        return metrics.evaluate_scene(
-            sim, factual, adversary=None if adversary is None else adversary.agent
-        )
+        conflict = self.loop.selection(self.slot, k).conflict
+        adversary = None if conflict is None else conflict.agent
+        return episode_summary(self.loop.scene(self.slot), self.scene, self.egos[k], adversary)
 
     # ------------------------------------------------------------------ highway-env hooks
     def _rewards(self, action: Any) -> dict[str, float]:

@@ -18,8 +18,8 @@ world-model call (scenes are windows of a common agent count K, padded). Per epi
 - **Every ``replan_every`` steps** (and at the start): the world model re-plans everyone from
   the simulated history (the ego's real past included) in the ego's frame; at each denoising
   step the adversary's rows alone are nudged by the guidance; of ``num_samples`` samples the
-  one with the lowest guidance loss plus realism cost (``sim/realism.py``) is kept. The ego's predicted row is only the guidance's
-  reference: the ego follows its policy.
+  one with the lowest guidance loss plus realism cost (``sim/realism.py``) is kept. The ego's
+  predicted row is only the guidance's reference: the ego follows its policy.
 - **Who moves how.** An agent exists at a step when the log says so (agents leave and enter
   as recorded; one that would enter on top of another waits until its logged pose is clear,
   ``sim/motion.py``). An agent in the model's window follows its current plan; one that was
@@ -30,9 +30,9 @@ world-model call (scenes are windows of a common agent count K, padded). Per epi
 - **Reflexes of the ordinary traffic** (not the egos). An agent about to run into another
   brakes along its path instead (``sim/yielding.py``; a guided adversary yields to everyone
   but the egos, ``adversary_yields_to_others``: its margins toward them are what the guidance
-  removes), and a step that would leave the road is
-  moved sideways onto the lane (``sim/road_keeping.py``). The steps are in ``sim/motion.py``,
-  the replans in ``sim/replan.py``.
+  removes), and a step that would leave the road is moved sideways onto the lane
+  (``sim/road_keeping.py``). The steps are in ``sim/motion.py``, the replans in
+  ``sim/replan.py``.
 - **Every step records** ego collisions (oriented boxes), off-road, the ego's signed
   longitudinal acceleration and hard braking, the smallest constant-velocity TTC, and the
   adversary's distance; :meth:`ClosedLoop.scene` returns the simulated :class:`Scene` for
