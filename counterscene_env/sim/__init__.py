@@ -7,6 +7,7 @@ Everything that decides how a non-ego agent moves lives here:
 - ``state.py``: the public records: :class:`Episode`, :class:`WorldState`,
   :class:`MotionSource`, :class:`ModelWindow`;
 - ``loop.py``: :class:`ClosedLoop` (reset / step / scene / infos);
+- ``step_info.py``: what every step records for an ego (its info dict);
 - ``replan.py``: model windows, one batched world-model call, the choice among samples,
   adversary selection at replans;
 - ``motion.py``: who moves how each step; ``yielding.py`` and ``road_keeping.py``: the
@@ -29,7 +30,7 @@ __all__ = [
 #: the CLI parser reads) loads without torch and highway-env.
 _FROM = {
     "SimConfig": "config",
-    "TTC_HORIZON": "loop",
+    "TTC_HORIZON": "step_info",
     "ClosedLoop": "loop",
     "Episode": "state",
     "ModelWindow": "state",

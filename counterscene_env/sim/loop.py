@@ -35,8 +35,8 @@ world-model call (scenes are windows of a common agent count K, padded). Per epi
   ``sim/replan.py``.
 - **Every step records** ego collisions (oriented boxes), off-road, the ego's signed
   longitudinal acceleration and hard braking, the smallest constant-velocity TTC, and the
-  adversary's distance; :meth:`ClosedLoop.scene` returns the simulated :class:`Scene` for
-  :mod:`counterscene_env.metrics`.
+  adversary's distance (``sim/step_info.py``); :meth:`ClosedLoop.scene` returns the
+  simulated :class:`Scene` for :mod:`counterscene_env.metrics`.
 
 Randomness: each episode has its own ``torch.Generator`` and ``numpy`` Generator, both seeded
 from its seed at :meth:`ClosedLoop.reset`, so an episode does not depend on which other
@@ -46,7 +46,6 @@ episodes share its batch; same seed and actions give the same episode on CPU.
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -54,10 +53,8 @@ import torch
 from highway_env.road.road import Road
 from highway_env.vehicle.kinematics import Vehicle
 
-from counterscene_env import geometry
 from counterscene_env.adversary.guidance import guidance_preset
 from counterscene_env.adversary.selection import Selection
-from counterscene_env.metrics import HARD_BRAKE_THRESHOLD
 from counterscene_env.scene.core import Scene
 from counterscene_env.sim import road_keeping
 from counterscene_env.sim.config import SimConfig
@@ -65,11 +62,9 @@ from counterscene_env.sim.memory import check_replan_memory
 from counterscene_env.sim.motion import advance
 from counterscene_env.sim.replan import Replanner
 from counterscene_env.sim.state import Episode, WorldState
+from counterscene_env.sim.step_info import ego_step_info
 from counterscene_env.world_model.model import WorldModel
 from counterscene_env.world_model.window import lane_segments
-
-#: Horizon of the per-step TTC, s.
-TTC_HORIZON = 5.0
 
 
 class ClosedLoop:
@@ -138,7 +133,7 @@ class ClosedLoop:
             for s, seed, rows in zip(scenes, seeds, egos, strict=True)
         ]
         for ep in self.episodes:
-            ep.records.append([self._info(ep, k, replanned=False) for k in range(len(ep.egos))])
+            ep.records.append([ego_step_info(ep, k, replanned=False) for k in range(len(ep.egos))])
         return [ep.records[-1][0] for ep in self.episodes]
 
     def start(self, b: int, scene: Scene, seed: int, egos: Sequence[int] | None = None) -> dict:
@@ -159,7 +154,7 @@ class ClosedLoop:
         windows = (len(others) + 1) * max(c.max_windows, len(egos))
         check_replan_memory(self.model.config, c.num_samples, windows, c.memory_limit_gb)
         ep = self._start(scene, int(seed), egos)
-        ep.records.append([self._info(ep, k, replanned=False) for k in range(len(ep.egos))])
+        ep.records.append([ego_step_info(ep, k, replanned=False) for k in range(len(ep.egos))])
         if b == len(self.episodes):
             self.episodes.append(ep)
         else:
@@ -293,56 +288,12 @@ class ClosedLoop:
             ep = self.episodes[b]
             ep_actions = None if actions is None else actions[b]
             advance(ep, ep_actions, states[b], self.config, self.guidance.enabled)
-            ep.records.append([self._info(ep, k, replanned=b in due) for k in range(E)])
+            ep.records.append([ego_step_info(ep, k, replanned=b in due) for k in range(E)])
         return [ep.records[-1][0] for ep in self.episodes]
 
     def infos(self, b: int) -> list[dict]:
         """Episode ``b``'s latest info dict of every ego (in ``egos`` order)."""
         return list(self.episodes[b].records[-1])
-
-    # ------------------------------------------------------------------ per-step info
-    def _info(self, ep: Episode, k: int, replanned: bool) -> dict:
-        """Ego ``k``'s step info (plain Python values; see the module docstring)."""
-        t, log = ep.t, ep.factual
-        e = ep.egos[k]
-        pos, yaw, ok = ep.positions[:, t], ep.yaws[:, t], ep.valid[:, t].copy()
-        ok[e] = False
-        ext = log.extents
-        hits = geometry.boxes_overlap(pos[e], yaw[e], ext[e], pos, yaw, ext) & ok
-        hit_rows = np.flatnonzero(hits)
-        vel = ep.speeds[:, t, None] * np.stack([np.cos(yaw), np.sin(yaw)], -1)
-        ttc = geometry.box_time_to_collision(
-            pos[e], vel[e], yaw[e], ext[e], pos, vel, yaw, ext, horizon=TTC_HORIZON
-        )
-        ttc = np.where(ok, ttc, np.inf)
-        acc = (ep.speeds[e, t] - ep.speeds[e, t - 1]) / log.dt if t > ep.start else 0.0
-        conflict = ep.selections[k].conflict
-        adv = None if conflict is None else conflict.agent
-        adv_dist = float(np.linalg.norm(pos[adv] - pos[e])) if adv is not None and ok[adv] else None
-        return {
-            "step": t - ep.start,
-            "time": (t - ep.start) * log.dt,
-            "collision": bool(hits.any()),
-            "collided_with": str(log.agent_ids[hit_rows[0]]) if hit_rows.size else None,
-            "hard_braking": bool(acc < HARD_BRAKE_THRESHOLD),
-            "ego_acceleration": float(acc),
-            "ego_speed": float(ep.speeds[e, t]),
-            "off_road": bool(log.road.off_road(pos[e])),
-            "min_ttc": float(ttc.min()) if ttc.size else math.inf,
-            "adversary": None if adv is None else str(log.agent_ids[adv]),
-            "conflict_type": None if conflict is None else conflict.subtype,
-            "danger_score": None if conflict is None else float(conflict.score),
-            "tier": None if conflict is None else conflict.tier,
-            "conflict_point": None
-            if conflict is None
-            else [float(x) for x in conflict.conflict_point],
-            "arrival_steps": None
-            if conflict is None
-            else [int(conflict.ego_step) - ep.start, int(conflict.adversary_step) - ep.start],
-            "adversary_distance": adv_dist,
-            "fallback": ep.selections[k].fallback,
-            "replanned": replanned,
-        }
 
     # ------------------------------------------------------------------ results
     def scene(self, b: int) -> Scene:
