@@ -8,8 +8,8 @@ Everything that decides how a non-ego agent moves lives here:
   :class:`MotionSource`, :class:`ModelWindow`;
 - ``loop.py``: :class:`ClosedLoop` (reset / step / scene / infos);
 - ``step_info.py``: what every step records for an ego (its info dict);
-- ``replan.py``: model windows, one batched world-model call, the choice among samples,
-  adversary selection at replans;
+- ``replan.py``: model windows, one batched world-model call, the choice among samples;
+- ``adversaries.py``: each ego's adversary, selected on the log or at replans on the model;
 - ``motion.py``: who moves how each step; ``yielding.py`` and ``road_keeping.py``: the
   reflexes of ordinary traffic; ``realism.py``: the realism cost of samples;
 - ``traffic.py``: the IDM lane follower for agents that left the model's view;

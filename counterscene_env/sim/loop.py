@@ -57,6 +57,7 @@ from counterscene_env.adversary.guidance import guidance_preset
 from counterscene_env.adversary.selection import Selection
 from counterscene_env.scene.core import Scene
 from counterscene_env.sim import road_keeping
+from counterscene_env.sim.adversaries import select_on_log
 from counterscene_env.sim.config import SimConfig
 from counterscene_env.sim.memory import check_replan_memory
 from counterscene_env.sim.motion import advance
@@ -224,7 +225,7 @@ class ClosedLoop:
         # The adversary is selected (and kept in the model's window) with guidance off too, so
         # an unguided run reports the same agent's collisions and clearance as a guided one.
         if self.config.selection_source == "log":
-            self.replanner.select_on_log(ep)
+            select_on_log(ep, self.config)
         return ep
 
     @property

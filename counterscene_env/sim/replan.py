@@ -1,5 +1,6 @@
-"""Replanning: model windows, one batched world-model call, the choice among samples, and
-adversary selection (paper, Algorithm 1; docs/design.md, "Data flow").
+"""Replanning: model windows, one batched world-model call and the choice among samples
+(paper, Algorithm 1; docs/design.md, "Data flow"). With ``selection_source="model"`` a
+replan first re-selects every ego's adversary (``sim/adversaries.py``).
 
 At a replan every due episode contributes its windows (each ego's own window first, where its
 adversary is guided), all windows of all episodes go to the world model in one call, and per
@@ -10,7 +11,6 @@ sees are handed to the IDM lane follower (``sim/traffic.py``).
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Sequence
 
@@ -23,9 +23,9 @@ from counterscene_env.adversary.guidance import (
     make_targets,
     sample_losses,
 )
-from counterscene_env.adversary.selection import Selection, select_adversary
 from counterscene_env.geometry import from_frame, wrap_angle
 from counterscene_env.scene.core import Scene
+from counterscene_env.sim.adversaries import reselect_on_model
 from counterscene_env.sim.config import SimConfig
 from counterscene_env.sim.realism import plan_cost
 from counterscene_env.sim.state import Episode, ModelWindow
@@ -35,7 +35,8 @@ from counterscene_env.world_model.window import agent_count, collate, make_windo
 
 
 class Replanner:
-    """Selects adversaries and re-plans episodes with one world-model call per replan.
+    """Re-plans episodes with one world-model call per replan (re-selecting their
+    adversaries first with ``selection_source="model"``).
 
     Args:
         model: the world model (in eval mode).
@@ -58,81 +59,6 @@ class Replanner:
         # Normalised tokens of zero acceleration and yaw rate: the warm start of an agent
         # with no previous prediction (it keeps its speed and course).
         self.still = model.normalize(torch.zeros(2)).numpy()
-
-    # ------------------------------------------------------------------ selection
-    def select_on_log(self, ep: Episode) -> None:
-        """Select every ego's adversary on the factual future (``selection_source="log"``)."""
-        s, lo, hi = ep.factual, ep.start + 1, ep.end + 1
-        future = s.positions[:, lo:hi], s.valid[:, lo:hi], s.speeds[:, lo:hi]
-        for k in range(len(ep.egos)):
-            ep.selections[k] = self.select(ep, k, *future, start_step=ep.start + 1)
-
-    def select(
-        self,
-        ep: Episode,
-        k: int,
-        positions: np.ndarray,
-        valid: np.ndarray,
-        speeds: np.ndarray,
-        start_step: int,
-        rows: np.ndarray | None = None,
-        yaws: np.ndarray | None = None,
-    ) -> Selection:
-        """Ego ``k``'s adversary on future tracks ``positions [A, F, 2]`` m, ``valid [A, F]``,
-        ``speeds [A, F]`` m/s; ``rows`` maps their rows to scene rows (None: identity).
-        Other egos, and the adversaries of egos before ``k``, are not eligible: every ego gets
-        its own world-model adversary."""
-        scene = ep.factual
-        rows = np.arange(scene.num_agents) if rows is None else rows
-        ego = int(np.flatnonzero(rows == ep.egos[k])[0])
-        taken = set(ep.egos) | {a for a in ep.adversaries[:k] if a is not None}
-        eligible = (scene.agent_types[rows] == "vehicle") & ~np.isin(rows, sorted(taken))
-        sel = select_adversary(
-            self.config.selector,
-            positions,
-            valid,
-            ego,
-            speeds=speeds,
-            extents=scene.extents[rows],
-            yaws=yaws,
-            eligible=eligible,
-            dt=scene.dt,
-            start_step=start_step,
-            strict=self.config.strict_gates,
-            yielders_first=self.config.yielders_first,
-            reachable_first=self.config.reachable_first,
-            rng=ep.rng,
-        )
-        if sel.conflict is not None:  # back to scene rows
-            agent = int(rows[sel.conflict.agent])
-            sel = dataclasses.replace(sel, conflict=dataclasses.replace(sel.conflict, agent=agent))
-        return sel
-
-    def _reselect_on_model(self, eps: Sequence[Episode], sims: Sequence[Scene]) -> None:
-        """``selection_source="model"``: re-select on the world model's own unguided
-        prediction of each ego's window."""
-        owner, items = [], []
-        for i, (sim, ep) in enumerate(zip(sims, eps, strict=True)):
-            for ego in ep.egos:
-                view = sim if ego == sim.ego_index else sim.replace(ego_index=ego)
-                items.append(make_window(view, ep.t, self.window_config, ep.segments))
-                owner.append(i)
-        counts = [agent_count(item) for item in items]
-        for count in sorted(set(counts)):  # one call per agent count, as in ``__call__``
-            js = [j for j, c in enumerate(counts) if c == count]
-            gens = [eps[owner[j]].generator for j in js]
-            batch = collate([items[j] for j in js], trim=True)
-            pred = self.model.sample(batch, 1, gens, **self.sample_kwargs)
-            for i, j in enumerate(js):
-                ep, item = eps[owner[j]], items[j]
-                k = ep.egos.index(int(item["rows"][0]))
-                ok = (item["rows"][:count] >= 0) & pred.valid[i].numpy()
-                traj = pred.trajectory[i, 0].numpy()[ok]  # [A, F, 4] window frame
-                xy = from_frame(traj[..., :2], item["origin"])
-                yaw = wrap_angle(traj[..., 2] + item["origin"][2])
-                valid = np.ones(xy.shape[:2], bool)
-                rows = item["rows"][:count][ok]
-                ep.selections[k] = self.select(ep, k, xy, valid, traj[..., 3], ep.t + 1, rows, yaw)
 
     # ------------------------------------------------------------------ windows
     def windows(self, ep: Episode, sim: Scene) -> list[ModelWindow]:
@@ -193,7 +119,8 @@ class Replanner:
         started = time.perf_counter()
         sims = [simulated_scene(ep) for ep in eps]
         if self.config.selection_source == "model":
-            self._reselect_on_model(eps, sims)
+            c = self.config
+            reselect_on_model(self.model, c, self.window_config, self.sample_kwargs, eps, sims)
         # Every window of every episode in one batched call; each ego's own window first.
         owner: list[int] = []
         windows: list[ModelWindow] = []

@@ -171,7 +171,7 @@ def world_model_figure(model, scene) -> None:
 
 # ---------------------------------------------------------------------- causal selection
 def factual_future(scene):
-    """The inputs the closed loop mines on (``sim/replan.py``): the factual future after "now"."""
+    """The inputs the closed loop mines on (``sim/adversaries.py``): the factual future after "now"."""
     lo = scene.current_index + 1
     return scene.positions[:, lo:], scene.valid[:, lo:], scene.speeds[:, lo:], lo
 
