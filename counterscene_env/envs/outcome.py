@@ -1,17 +1,24 @@
 """What one policy step means for an ego: its info over the step's frames, its reward terms
 and whether it ends the ego's episode (``CounterScene-v0``'s spec sheet, ``envs/single_agent.py``);
 and the episode's metric summary for an ego, given at its end.
+
+The functions compute these from plain values; :class:`EgoOutcomes` answers them per ego as
+methods of the env (the PettingZoo env's per-agent results, highway-env's hooks for ego 0).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from highway_env import utils
+from highway_env.vehicle.kinematics import Vehicle
 
 from counterscene_env import metrics
 from counterscene_env.scene.core import Scene
+from counterscene_env.sim import ClosedLoop
+from counterscene_env.sim.state import Episode
 
 #: Info flags that count if they happen at any frame of the policy step.
 ANY_FRAME = ("collision", "hard_braking", "off_road")
@@ -64,3 +71,95 @@ def episode_summary(sim: Scene, factual: Scene, ego: int, adversary: int | None)
         sim = sim.replace(ego_index=ego)
     factual = factual.time_slice(0, sim.num_steps).replace(ego_index=ego)
     return metrics.evaluate_scene(sim, factual, adversary=adversary)
+
+
+class EgoOutcomes:
+    """The outcome of the last policy step for each ego, as methods of the env.
+
+    Mixed into :class:`~counterscene_env.envs.single_agent.CounterSceneEnv`: the ``ego_*``
+    methods answer for ego ``k`` (the PettingZoo env, ``envs/parallel.py``, calls them per
+    agent), and highway-env's ``_reward``, ``_rewards``, ``_is_terminated``,
+    ``_is_truncated`` and ``_info`` hooks answer for the env's single agent, ego 0. It reads
+    the env's attributes below (set at reset and by ``envs/frames.py`` every frame) and
+    highway-env's ``vehicle`` (ego 0's vehicle).
+    """
+
+    config: dict[str, Any]
+    scene: Scene  # the episode's factual scene
+    egos: list[int]  # the egos' scene rows
+    frame_infos: list[list[dict]]  # [frame][ego]: the closed loop's infos of the policy step
+    ended: list[bool]  # per ego: its episode has ended (terminated; it stops where it is)
+    controlled_vehicles: list[Vehicle]  # the egos' highway-env vehicles
+    loop: ClosedLoop
+    slot: int  # this env's episode in ``loop``
+    episode: Episode
+    steps: int  # frames simulated in the episode (highway-env's counter)
+
+    def ego_info(self, k: int = 0) -> dict:
+        """Ego ``k``'s info over the last policy step (:func:`step_info`; the keys are in
+        ``CounterSceneEnv``'s docstring)."""
+        return step_info([f[k] for f in self.frame_infos], self.scene.scenario_id)
+
+    def ego_rewards(self, k: int = 0) -> dict[str, float]:
+        return reward_terms(self.ego_info(k), self.config["reward_speed_range"])
+
+    def ego_reward(self, k: int = 0) -> float:
+        return weighted_reward(self.ego_rewards(k), self.config)
+
+    def _ego_ended(self, k: int) -> bool:
+        return ends_episode(self.ego_info(k), self.config)
+
+    def ego_terminated(self, k: int = 0) -> bool:
+        """Ego ``k`` collided or left the road (as configured) in the last policy step."""
+        if self.ended[k]:
+            return True
+        ended = self._ego_ended(k)
+        if ended:
+            self.ended[k] = True
+            self.controlled_vehicles[k].crashed = True  # it stops where it is
+        return ended
+
+    def ego_truncated(self, k: int = 0) -> bool:
+        return self.episode.done and not self.ended[k] and not self._ego_ended(k)
+
+    def episode_metrics(self, k: int = 0) -> dict:
+        """Ego ``k``'s metric summary of the episode so far (metrics.evaluate_scene)."""
+        conflict = self.loop.selection(self.slot, k).conflict
+        adversary = None if conflict is None else conflict.agent
+        return episode_summary(self.loop.scene(self.slot), self.scene, self.egos[k], adversary)
+
+    def stop_ended_egos(self) -> None:
+        """Mark crashed every ego whose episode the frames so far end: highway-env brakes a
+        crashed vehicle to a stop where it is. (Called after every frame; the end itself is
+        reported at the end of the policy step, by ``ego_terminated``.)"""
+        for k, v in enumerate(self.controlled_vehicles):
+            if not v.crashed and self._ego_ended(k):
+                v.crashed = True
+
+    def all_egos_ended(self) -> bool:
+        """Every ego is done: the rest of the policy step would simulate no one's decision.
+        (An ego that ends mid-step with others still driving brakes to a stop, crashed, and
+        its end is reported at the end of the policy step.)"""
+        return all(self.ended[k] or self._ego_ended(k) for k in range(len(self.egos)))
+
+    # highway-env's hooks, for the env's single agent (ego 0)
+    def _rewards(self, action: Any) -> dict[str, float]:
+        return self.ego_rewards(0)
+
+    def _reward(self, action: Any) -> float:
+        return self.ego_reward(0)
+
+    def _is_terminated(self) -> bool:
+        return any([self.ego_terminated(k) for k in range(len(self.egos))])
+
+    def _is_truncated(self) -> bool:
+        return self.episode.done and not any(self.ended)
+
+    def _info(self, obs: Any, action: Any = None) -> dict:
+        info = self.ego_info(0)
+        info["rewards"] = self.ego_rewards(0)
+        info["speed"] = float(self.vehicle.speed)
+        info["crashed"] = bool(self.vehicle.crashed or info["collision"])
+        if self.steps and (any(self.ended) or self.episode.done):
+            info["metrics"] = self.episode_metrics(0)
+        return info

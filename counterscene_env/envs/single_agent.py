@@ -7,6 +7,12 @@ the traffic: instead of IDM/MOBIL vehicles, :class:`~counterscene_env.sim.Closed
 other agent with the diffusion world model, and steers the causally selected adversary with
 counterfactual guidance. The full spec sheet (spaces, rewards, config keys, info keys) is the
 docstring of :class:`CounterSceneEnv` and ``docs/environment.md``.
+
+The env class is assembled from two mixins: the frames of a policy step
+(:class:`~counterscene_env.envs.frames.SimulationFrames`, ``envs/frames.py``) and each ego's
+outcome of it, info, rewards and end (:class:`~counterscene_env.envs.outcome.EgoOutcomes`,
+``envs/outcome.py``). This module holds the rest: construction, config, reset, the step's
+checks and its order, rendering.
 """
 
 from __future__ import annotations
@@ -28,14 +34,9 @@ from counterscene_env.envs.config import (
     sim_settings,
 )
 from counterscene_env.envs.egos import pick_egos
+from counterscene_env.envs.frames import SimulationFrames
 from counterscene_env.envs.mirror import Mirror, build_mirror, sync_mirror
-from counterscene_env.envs.outcome import (
-    ends_episode,
-    episode_summary,
-    reward_terms,
-    step_info,
-    weighted_reward,
-)
+from counterscene_env.envs.outcome import EgoOutcomes
 from counterscene_env.envs.render import EpisodeView, render_frame, view_of
 from counterscene_env.envs.spaces import (
     as_highway_action,
@@ -45,7 +46,6 @@ from counterscene_env.envs.spaces import (
     reads_lanes,
 )
 from counterscene_env.scene.core import Scene
-from counterscene_env.scene.prefetch import one_thread_if
 from counterscene_env.scene.sources import SceneSource
 from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.sim.state import Episode
@@ -58,7 +58,7 @@ def draw_episode_seed(rng: np.random.Generator) -> int:
     return int(rng.integers(2**31))
 
 
-class CounterSceneEnv(AbstractEnv):
+class CounterSceneEnv(EgoOutcomes, SimulationFrames, AbstractEnv):
     """Stress-test a driving policy against world-model traffic with a guided adversary.
 
     **Description.** Each episode starts from a factual scene (a fresh highway-env recording,
@@ -139,9 +139,9 @@ class CounterSceneEnv(AbstractEnv):
         self.egos: list[int] = []
         self.mirror: Mirror | None = None  # highway-env's road and vehicles of the episode
         self.traffic: dict[int, Vehicle] = {}  # scene row -> its highway-env vehicle (not egos)
-        self._frames: list[list[dict]] = []
-        self._frames_left = 0
-        self._ended: list[bool] = []
+        #: Per frame of the last policy step, every ego's closed-loop info (envs/frames.py).
+        self.frame_infos: list[list[dict]] = []
+        self.ended: list[bool] = []  # per ego: its episode has ended (terminated)
         self._source: SceneSource | None = None
         self._reset_options: dict = {}
         self._failure: str | None = None  # why the env needs reset() (an unexpected failure)
@@ -280,8 +280,8 @@ class CounterSceneEnv(AbstractEnv):
         else:
             self.loop.reset([scene], [seed], [egos])
         self.scene, self.egos = scene, egos
-        self._frames = [[dict(i) for i in self.loop.infos(self.slot)]]
-        self._ended = [False] * len(egos)
+        self.frame_infos = [[dict(i) for i in self.loop.infos(self.slot)]]
+        self.ended = [False] * len(egos)
 
         self.mirror = build_mirror(
             scene,
@@ -294,7 +294,7 @@ class CounterSceneEnv(AbstractEnv):
         self.road.neighbour_vehicles_connected_lanes = config["neighbour_vehicles_connected_lanes"]
         self.controlled_vehicles = self.mirror.egos
         self.traffic = self.mirror.traffic
-        self._sync_road()
+        self.sync_road()
         if config["prefetch_scenes"] and drawn:  # the next reset's scene, if it draws too
             # Two draws ahead for one env that draws its episode seeds (the next reset is
             # taken to be like this one); one per env in a vector env, whose envs keep the
@@ -364,7 +364,7 @@ class CounterSceneEnv(AbstractEnv):
             raise RuntimeError(f"{self._failure}: the episode cannot go on, call reset()")
         if self.loop is None or self.slot >= len(self.loop.episodes):
             raise RuntimeError("call reset() before step()")
-        if self.episode.done or (every_ego and any(self._ended)):
+        if self.episode.done or (every_ego and any(self.ended)):
             raise RuntimeError("the episode is over (terminated or truncated): call reset()")
 
     def _fail(self, call: str, exc: Exception) -> None:
@@ -374,117 +374,12 @@ class CounterSceneEnv(AbstractEnv):
         if call == "step":
             raise RuntimeError(f"{self._failure}: the episode cannot go on, call reset()") from exc
 
-    def _simulate(self, action: Any = None) -> None:
-        """highway-env's template method: the policy step's frames (after ``begin_frames``),
-        this env's episode alone; ``action``, if given, is applied first."""
-        if action is not None and not self.config["manual_control"]:
-            self.action_type.act(as_highway_action(action))
-        B, E = len(self.loop.episodes), len(self.egos)
-        only = np.arange(B) == self.slot
-        while True:
-            states = np.full((B, E, 4), np.nan)
-            states[self.slot] = self.advance_egos()
-            with one_thread_if(self.recording_ahead):
-                self.loop.step(ego_states=states, only=only)
-            if self.end_frame():
-                break
-            self._automatic_rendering()
-        self.enable_auto_render = False
-
-    # The three steps of one policy step's simulation frames, public so that a vector env
-    # (envs/vector.py) runs the frames of all its envs with one closed-loop step each.
-    def begin_frames(self) -> None:
-        """Start a policy step's simulation frames (after the action is applied)."""
-        self._frames = []
-        self._frames_left = self.config["simulation_frequency"] // self.config["policy_frequency"]
-
-    def advance_egos(self) -> np.ndarray:
-        """Step every ego's highway-env vehicle by one frame; ``[E, 4]`` their new states
-        (x m, y m, yaw rad, speed m/s), for ``ClosedLoop.step(ego_states=...)``."""
-        dt = 1 / self.config["simulation_frequency"]
-        states = np.empty((len(self.egos), 4))
-        for k, v in enumerate(self.controlled_vehicles):
-            v.act()  # lane-following vehicles recompute their low-level controls
-            v.step(dt)
-            states[k] = (*v.position, v.heading, v.speed)
-        return states
-
-    def end_frame(self) -> bool:
-        """Take in the closed loop's step of this env's episode; True when the policy step's
-        frames are over (all simulated, the episode done, or every ego ended)."""
-        self._frames.append([dict(i) for i in self.loop.infos(self.slot)])
-        self._sync_road()
-        self.steps += 1
-        self._frames_left -= 1
-        for k, v in enumerate(self.controlled_vehicles):
-            if not v.crashed and self._ego_ended(k):
-                v.crashed = True  # done: it brakes to a stop where it is (highway-env)
-        return self._frames_left <= 0 or self.episode.done or self._all_ended()
-
-    def _sync_road(self) -> None:
+    # ------------------------------------------------------------------ frames
+    # The frames themselves are SimulationFrames' (envs/frames.py); each ego's outcome of the
+    # policy step is EgoOutcomes' (envs/outcome.py).
+    def sync_road(self) -> None:
         """Write the closed loop's state into highway-env's road (observations, viewer)."""
         sync_mirror(self.mirror, self.loop.state(self.slot), lanes=self._needs_lanes)
-
-    def _all_ended(self) -> bool:
-        """Every ego is done: the rest of the policy step would simulate no one's decision.
-        (An ego that ends mid-step with others still driving brakes to a stop, crashed, and
-        its end is reported at the end of the policy step.)"""
-        return all(self._ended[k] or self._ego_ended(k) for k in range(len(self.egos)))
-
-    # ------------------------------------------------------------------ per ego
-    def ego_info(self, k: int = 0) -> dict:
-        """Ego ``k``'s info over the last policy step (module docstring)."""
-        return step_info([f[k] for f in self._frames], self.scene.scenario_id)
-
-    def ego_rewards(self, k: int = 0) -> dict[str, float]:
-        return reward_terms(self.ego_info(k), self.config["reward_speed_range"])
-
-    def ego_reward(self, k: int = 0) -> float:
-        return weighted_reward(self.ego_rewards(k), self.config)
-
-    def _ego_ended(self, k: int) -> bool:
-        return ends_episode(self.ego_info(k), self.config)
-
-    def ego_terminated(self, k: int = 0) -> bool:
-        """Ego ``k`` collided or left the road (as configured) in the last policy step."""
-        if self._ended[k]:
-            return True
-        ended = self._ego_ended(k)
-        if ended:
-            self._ended[k] = True
-            self.controlled_vehicles[k].crashed = True  # it stops where it is
-        return ended
-
-    def ego_truncated(self, k: int = 0) -> bool:
-        return self.episode.done and not self._ended[k] and not self._ego_ended(k)
-
-    def episode_metrics(self, k: int = 0) -> dict:
-        """Ego ``k``'s metric summary of the episode so far (metrics.evaluate_scene)."""
-        conflict = self.loop.selection(self.slot, k).conflict
-        adversary = None if conflict is None else conflict.agent
-        return episode_summary(self.loop.scene(self.slot), self.scene, self.egos[k], adversary)
-
-    # ------------------------------------------------------------------ highway-env hooks
-    def _rewards(self, action: Any) -> dict[str, float]:
-        return self.ego_rewards(0)
-
-    def _reward(self, action: Any) -> float:
-        return self.ego_reward(0)
-
-    def _is_terminated(self) -> bool:
-        return any([self.ego_terminated(k) for k in range(len(self.egos))])
-
-    def _is_truncated(self) -> bool:
-        return self.episode.done and not any(self._ended)
-
-    def _info(self, obs: Any, action: Any = None) -> dict:
-        info = self.ego_info(0)
-        info["rewards"] = self.ego_rewards(0)
-        info["speed"] = float(self.vehicle.speed)
-        info["crashed"] = bool(self.vehicle.crashed or info["collision"])
-        if self.steps and (any(self._ended) or self.episode.done):
-            info["metrics"] = self.episode_metrics(0)
-        return info
 
     def episode_view(self) -> EpisodeView:
         """What the viewer draws on top of highway-env's frame (``envs/render.py``)."""
