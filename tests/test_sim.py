@@ -346,6 +346,27 @@ def test_lane_keeping_lets_only_a_guided_adversary_keep_to_any_lane(model, guida
         assert all(len(r) == 1 for r in rows)
 
 
+@pytest.mark.parametrize(("horizon", "steps"), [(None, None), (2.0, 20)])
+def test_the_sample_choice_reads_as_much_of_each_plan_as_asked(model, monkeypatch, horizon, steps):
+    """The realism cost of the choice among samples reads the whole plan by default (a
+    crossing must be seen while braking can still avoid it), or ``realism_horizon`` s."""
+    from counterscene_env.sim import replan
+
+    seen = []
+    cost = replan.plan_cost
+
+    def spy(*args):
+        seen.append(args[-1])
+        return cost(*args)
+
+    monkeypatch.setattr(replan, "plan_cost", spy)
+    loop = ClosedLoop(model, SimConfig(duration=1.0, realism_horizon=horizon))
+    loop.reset([crossing_scene()], [0])
+    for _ in range(5):
+        loop.step(np.zeros((1, 2)))
+    assert seen and all(s == steps for s in seen)
+
+
 def platoon_scene(T=90, c=30):
     """:func:`rear_scene` with a third car at 3 m/s from x = 45, between the follower (row 1,
     the adversary) and the ego (row 0): the follower cannot reach the ego without hitting it."""

@@ -570,6 +570,36 @@ def test_a_plan_in_the_oncoming_lane_is_off_its_lanes_and_steered_back():
     assert torch.equal(steer_onto_lanes(tiny, batch, x, 40, any_way), x)
 
 
+def test_the_realism_cost_counts_a_collision_beyond_its_horizon_only_when_it_reads_that_far():
+    """Two cars on one lane, the second stopped 35 m ahead of the first (10 m/s): their boxes
+    meet after about 3 s. A cost that reads the whole plan counts those steps; one that reads
+    2 s (``SimConfig.realism_horizon``) does not, and is then the cost of a plan that never
+    meets."""
+    from counterscene_env.sim.realism import plan_cost
+
+    F = 52
+    t = torch.arange(1, F + 1) * 0.1
+    moving = torch.stack([10 * t, torch.zeros(F), torch.zeros(F), torch.full((F,), 10.0)], -1)
+    stopped = torch.tensor([35.0, 0.0, 0.0, 0.0]).expand(F, 4)
+    elsewhere = torch.tensor([35.0, 3.5, 0.0, 0.0]).expand(F, 4)  # in the next lane
+    meet = torch.stack([moving, stopped])[None]  # [1, K=2, F, 4]
+    apart = torch.stack([moving, elsewhere])[None]
+    valid = torch.ones(1, 2, dtype=torch.bool)
+    extents = torch.tensor([[[4.5, 1.9], [4.5, 1.9]]])
+    xs = torch.linspace(-10, 80, 10)
+    lane = lambda y: torch.stack([xs, torch.full_like(xs, y)], -1)  # noqa: E731
+    lanes = (
+        torch.stack([lane(0.0), lane(3.5)])[None],
+        torch.ones(1, 2, dtype=torch.bool),
+        torch.full((1, 2), 3.5),
+    )
+    whole = float(plan_cost(meet, valid, extents, lanes)[0])
+    first_2s = float(plan_cost(meet, valid, extents, lanes, steps=20)[0])
+    assert whole >= 5  # the steps from about 3.1 s to 3.9 s overlap (the mover runs into it)
+    assert first_2s == float(plan_cost(apart, valid, extents, lanes, steps=20)[0]) == 0.0
+    assert float(plan_cost(apart, valid, extents, lanes)[0]) == 0.0
+
+
 def test_the_realism_cost_and_the_training_term_count_the_oncoming_lane_as_off_the_lanes():
     """The sample choice's realism cost and the training loss's off-lane term measure a car
     in the oncoming lane by the distance to its own (2 m outside its strip here); on a road
@@ -590,7 +620,7 @@ def test_the_realism_cost_and_the_training_term_count_the_oncoming_lane_as_off_t
         valid = tiny.agent_mask(batch)
         # Row 1's mean squared excess (2 m or more: its first points lie near the end of the
         # window's crop of its own lane), averaged with row 0's 0 over the two cars on a lane.
-        cost = float(plan_cost(traj, valid, batch["extents"], lanes)[0])
+        cost = float(plan_cost(traj, valid, batch["extents"], lanes, steps=20)[0])
         assert want**2 / 2 - 1e-4 <= cost < (want + 0.5) ** 2 / 2 + 1e-4
         # The training term: the log drives in its own lane (here: the same straight line
         # as the prediction, but eastward on the road's lane), the prediction in row 1.

@@ -9,7 +9,8 @@ episodes in which a vehicle other than the ego is wrong-way for at least 1 s wit
 and the share of moving vehicle-steps that are; the logs' own figures are given beside them
 (0 on generated roads). It also sorts the collisions between two vehicles other than the ego
 that the log does not have by how the two were heading at their first overlapping step:
-head-on (courses over 150 degrees apart), the same way (under 30) or crossing:
+head-on (courses over 150 degrees apart), the same way (under 30) or crossing, and gives per
+episode whether it had one (``per_episode``, to pair two runs on the same scenes):
 
     python tools/wrong_way.py data/eval-intersection [--episodes 50] [--set KEY=VALUE ...]
 
@@ -143,18 +144,22 @@ def main() -> None:
     settings = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
     loop = ClosedLoop(load_model(args.model), SimConfig(**{"guidance": "none", **settings}))
     scenes = loaded_scenes(args.data)[: args.episodes]
-    rollouts, logs, kinds, hit = [], [], [], 0
+    rollouts, logs, kinds, flags = [], [], [], []
     for i, scene in enumerate(scenes):
         run_batch(loop, [scene], [i], [make_planner("log")])
         rollouts.append(loop.scene(0))
         logs.append(scene.time_slice(0, rollouts[-1].num_steps))
         pairs = new_collision_kinds(rollouts[-1], logs[-1])
         kinds += pairs
-        hit += bool(pairs)
+        flags.append(int(bool(pairs)))
+    hit = sum(flags)
     collisions = {
         "episodes_with_new_non_ego_collision": hit,
         "ci95": list(wilson_interval(hit, len(scenes))),
         "pairs": {k: kinds.count(k) for k in ("crossing", "same way", "head-on")},
+        # Per episode, in the order of the stored scenes: two runs on the same scenes pair up
+        # (counterscene_env.report.stats.paired_rate).
+        "per_episode": flags,
     }
     print(
         json.dumps(

@@ -95,6 +95,12 @@ class SimConfig:
             rate on development episodes (inside the noise; docs/performance.md).
         realism_weight: weight of the realism cost (agents overlapping or off their lanes,
             sim/realism.py) in the choice among samples; 0: guidance loss only.
+        realism_horizon: how far ahead the realism cost counts each sample's overlaps [s]
+            (None: the whole plan, 5.2 s for the shipped model; its off-lane distance counts
+            over the first 2 s, sim/realism.py). A car crossing another's path must brake
+            about 3 s before the crossing; a cost that read only the first 2 s (until 27 Nov
+            2026) saw the world model's crossing collisions only once every sample had them
+            (docs/world_model.md, "The network's crossing collisions").
         cover_radius: an agent is planned from a model window only if it is within this many
             metres of the window's centre [m]; farther agents get windows of their own.
         max_windows: model windows per episode and replan (the ego's plus extra ones).
@@ -134,6 +140,7 @@ class SimConfig:
     warm_start_steps: int = bounded(2, ge=0)
     warm_first_replan: bool = False
     realism_weight: float = bounded(1.0, ge=0)
+    realism_horizon: float | None = bounded(None, gt=0)
     cover_radius: float = bounded(25.0, gt=0)
     max_windows: int = bounded(1, ge=1)
     traffic_yields: bool = True

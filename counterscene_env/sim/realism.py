@@ -17,9 +17,11 @@ import torch
 from counterscene_env.geometry import boxes_overlap
 from counterscene_env.world_model.map_guidance import ON_LANE_TOLERANCE, lane_excess
 
-#: Steps of each plan the cost reads (the closed loop executes only the first few before it
-#: replans; 2 s also catches a conflict that the next replan could no longer avoid).
-COST_STEPS = 20
+#: Steps of each plan whose off-lane distance counts (2 s). The overlaps read farther
+#: (``steps``): a crossing must be seen while braking can still avoid it. The lanes need not:
+#: a window's lanes are cropped about its centre, so far points of a plan may lie past the
+#: crop of their own lane, and lane keeping holds the plans to the lanes anyway.
+LANE_STEPS = 20
 
 
 def plan_cost(
@@ -28,7 +30,7 @@ def plan_cost(
     extents: torch.Tensor,
     lanes: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     exclude: torch.Tensor | None = None,
-    steps: int = COST_STEPS,
+    steps: int | None = None,
 ) -> torch.Tensor:
     """``[N]`` realism cost of sampled trajectories.
 
@@ -39,7 +41,9 @@ def plan_cost(
         lanes: (points ``[N, M, P, 2]``, valid ``[N, M]``, widths ``[N, M]``) of the window map.
         exclude: ``[N, K]`` bool, agents the cost ignores (the ego, whose plan is never
             executed, and the adversary, which the guidance steers).
-        steps: leading steps of each plan that count.
+        steps: leading steps of each plan whose overlaps count (None: all F;
+            ``SimConfig.realism_horizon``); the off-lane distance counts over the first
+            ``min(steps, LANE_STEPS)``.
 
     Returns:
         Number of overlapping agent pairs summed over the steps, plus the mean squared
@@ -47,6 +51,7 @@ def plan_cost(
         one's way: ``lane_excess`` with the rollout's course).
     """
     xy = trajectory[:, :, :steps, :2]
+    lane_steps = LANE_STEPS if steps is None else min(steps, LANE_STEPS)
     keep = valid if exclude is None else valid & ~exclude
     # Oriented boxes (heading = the rollout's course) of every pair at every step.
     pos = xy.detach().cpu().numpy().astype(np.float64)  # [N, K, T, 2]
@@ -63,7 +68,9 @@ def plan_cost(
     overlaps = torch.from_numpy((hit & pair[..., None]).sum(axis=(1, 2, 3)).astype(np.float32))
 
     # Off the lanes going the agent's way: the oncoming lane is no lane to keep to.
-    off = lane_excess(xy, *lanes, headings=trajectory[:, :, :steps, 2])  # [N, K, T]
+    off = lane_excess(
+        xy[:, :, :lane_steps], *lanes, headings=trajectory[:, :, :lane_steps, 2]
+    )  # [N, K, T]
     # On a lane now, whichever its way (a car already in the oncoming lane is to go back).
     on_lane = lane_excess(xy[:, :, :1], *lanes)[..., 0] <= ON_LANE_TOLERANCE
     weight = (keep & on_lane).float()

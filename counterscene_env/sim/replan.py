@@ -56,6 +56,9 @@ class Replanner:
             map_guidance=config.map_guidance,
             lane_steering=config.lane_steering,
         )
+        # Steps of each plan the realism cost reads (None: the whole plan).
+        horizon = config.realism_horizon
+        self.cost_steps = None if horizon is None else max(1, round(horizon / model.config.dt))
         # Normalised tokens of zero acceleration and yaw rate: the warm start of an agent
         # with no previous prediction (it keeps its speed and course).
         self.still = model.normalize(torch.zeros(2)).numpy()
@@ -277,7 +280,7 @@ class Replanner:
             traj = self._egos_held(batch, pred, ego_rows)
             lanes = tuple(rep(batch[k]) for k in ("map", "map_valid", "map_widths"))
             cost += w * plan_cost(
-                traj, rep(pred.valid), rep(batch["extents"]), lanes, rep(exclude)
+                traj, rep(pred.valid), rep(batch["extents"]), lanes, rep(exclude), self.cost_steps
             ).reshape(W, S)
         return cost.argmin(-1)
 
