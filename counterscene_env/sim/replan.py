@@ -56,7 +56,7 @@ class Replanner:
             map_guidance=config.map_guidance,
             lane_steering=config.lane_steering,
         )
-        # Steps of each plan the realism cost reads (None: the whole plan).
+        # Steps of each plan whose overlaps the realism cost counts (None: the whole plan).
         horizon = config.realism_horizon
         self.cost_steps = None if horizon is None else max(1, round(horizon / model.config.dt))
         # Normalised tokens of zero acceleration and yaw rate: the warm start of an agent
