@@ -108,6 +108,25 @@ def test_non_ego_collision_counts_only_in_all_agent_rates(road):
     assert math.isinf(res["min_ttc"])
 
 
+def test_new_vehicle_collisions_are_the_rollouts_non_ego_overlaps_the_log_does_not_have(road):
+    """Row 2 runs into row 1 in the rollout only; rows 1 and 3 overlap throughout, in the log
+    too, and the ego (row 0) overlaps row 3. Only (1, 2) is new, from rollout step 5."""
+    from counterscene_env.metrics.safety import new_vehicle_collisions
+
+    steps = HIST + 10
+    pos = np.zeros((4, steps, 2))
+    pos[0, :, 0] = 20.0  # the ego, on row 3
+    pos[3, :, 0] = 20.0 + 3.0  # row 3, overlapping the ego and ...
+    pos[1, :, 0] = 20.0 + 6.0  # ... row 1 (boxes 4 m long, 3 m apart)
+    pos[2, :, 0] = 40.0  # row 2, clear of everyone in the log
+    log = make_scene(road, pos)
+    sim_pos = pos.copy()
+    # In the rollout it closes in at 20 m/s and stops 2 m from row 1, from rollout step 5 on.
+    sim_pos[2, HIST:, 0] = np.maximum(28.0, 40.0 - 2.0 * np.arange(1, 11))
+    assert new_vehicle_collisions(make_scene(road, sim_pos), log) == [(1, 2, 5)]
+    assert new_vehicle_collisions(log, log) == []
+
+
 # ---------------------------------------------------------------------- HBR
 def straight_motion(v0, acc, yaw, steps=HIST + 30):
     """Positions, yaws and speeds of a car along heading ``yaw`` with constant acceleration."""

@@ -29,9 +29,10 @@ import json
 
 import numpy as np
 
+from counterscene_env.cli.common import parse_overrides
 from counterscene_env.geometry import boxes_overlap
 from counterscene_env.metrics.common import rollout_slice
-from counterscene_env.metrics.safety import agent_overlaps
+from counterscene_env.metrics.safety import new_vehicle_collisions
 from counterscene_env.planners import make_planner
 from counterscene_env.scene.sources import loaded_scenes
 from counterscene_env.sim import ClosedLoop, SimConfig
@@ -86,20 +87,6 @@ class Recorder:
         Replanner.windows, WorldModel.sample, Replanner.choose = rec_windows, rec_sample, rec_choose
 
 
-def new_pairs(sim, log) -> list[tuple[int, int, int]]:
-    """(row a, row b, absolute step of the first overlap) of every pair of non-ego vehicles
-    that overlap in ``sim``'s rollout and never in the log."""
-    veh = sim.vehicle_mask.copy()
-    veh[sim.ego_index] = False
-    overlaps = agent_overlaps(sim) & veh[None, :, None] & veh[None, None, :]
-    new = np.triu(overlaps.any(0) & ~agent_overlaps(log).any(0), 1)
-    start = rollout_slice(sim).start
-    return [
-        (a, b, start + int(np.argmax(overlaps[:, a, b])))
-        for a, b in zip(*np.nonzero(new), strict=True)
-    ]
-
-
 def look_back(replans: list[dict], a: int, b: int, hit: int, extents, dt: float) -> dict:
     """The pair's lead and, per replan before ``hit``, (lead s, share of samples with it)."""
     lead, shares = None, []
@@ -130,8 +117,7 @@ def main() -> None:
     ap.add_argument("--model", default="default")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
     args = ap.parse_args()
-    settings = {**NETWORK_ALONE}
-    settings.update({k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)})
+    settings = {**NETWORK_ALONE, **parse_overrides(args.set)}
     recorder = Recorder()
     recorder.install()
     loop = ClosedLoop(load_model(args.model), SimConfig(**{"guidance": "none", **settings}))
@@ -141,8 +127,9 @@ def main() -> None:
         run_batch(loop, [scene], [i], [make_planner("log")])
         sim = loop.scene(0)
         log = scene.time_slice(0, sim.num_steps)
-        for a, b, hit in new_pairs(sim, log):
-            pairs.append(look_back(recorder.replans, a, b, hit, sim.extents, sim.dt))
+        start = rollout_slice(sim).start  # the replans' steps are the scene's
+        for a, b, t in new_vehicle_collisions(sim, log):
+            pairs.append(look_back(recorder.replans, a, b, start + t, sim.extents, sim.dt))
     leads = np.array([p["lead_s"] for p in pairs if p["lead_s"] is not None])
     by_lead = {}
     for lo, hi in itertools.pairwise(LEAD_BINS):

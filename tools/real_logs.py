@@ -135,18 +135,12 @@ def new_vehicle_collisions(sim: Scene, factual: Scene, source: np.ndarray) -> li
     the same steps, each named by how the two moved into their first overlapping step
     (``source`` ``[N, T]``: ``ClosedLoop.motion_source``), e.g. ``"PLAN-PLAN"`` (both on
     the model's plans: the network's own collision) or ``"IDM-LOG"`` (neither)."""
-    from counterscene_env.metrics.safety import agent_overlaps, rollout_slice
+    from counterscene_env.metrics.safety import new_vehicle_collisions, rollout_slice
     from counterscene_env.sim import MotionSource
 
-    veh = sim.vehicle_mask.copy()
-    veh[sim.ego_index] = False
-    sim_overlaps = agent_overlaps(sim) & veh[None, :, None] & veh[None, None, :]
-    log_pairs = agent_overlaps(factual).any(0)
-    new = np.triu(sim_overlaps.any(0) & ~log_pairs, 1)
     rolled = source[:, rollout_slice(sim)]
     kinds = []
-    for a, b in zip(*np.nonzero(new), strict=True):
-        t = int(np.argmax(sim_overlaps[:, a, b]))
+    for a, b, t in new_vehicle_collisions(sim, factual):
         names = sorted(MotionSource(int(rolled[r, t])).name for r in (a, b))
         kinds.append("-".join(names))
     return kinds

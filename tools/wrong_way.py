@@ -25,9 +25,10 @@ import json
 
 import numpy as np
 
+from counterscene_env.cli.common import parse_overrides
 from counterscene_env.geometry import wrap_angle
 from counterscene_env.metrics.common import rollout_slice, wilson_interval
-from counterscene_env.metrics.safety import agent_overlaps
+from counterscene_env.metrics.safety import new_vehicle_collisions
 from counterscene_env.planners import make_planner
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import loaded_scenes
@@ -89,14 +90,9 @@ def wrong_way_steps(scene: Scene, rows: list[int], steps: slice) -> np.ndarray:
 def new_collision_kinds(sim: Scene, factual: Scene) -> list[str]:
     """Pairs of non-ego vehicles that overlap in ``sim``'s rollout but never in the log,
     each named by the angle between their courses at the first overlapping step."""
-    veh = sim.vehicle_mask.copy()
-    veh[sim.ego_index] = False
-    overlaps = agent_overlaps(sim) & veh[None, :, None] & veh[None, None, :]
-    new = np.triu(overlaps.any(0) & ~agent_overlaps(factual).any(0), 1)
     yaw = sim.yaws[:, rollout_slice(sim)]
     kinds = []
-    for a, b in zip(*np.nonzero(new), strict=True):
-        t = int(np.argmax(overlaps[:, a, b]))
+    for a, b, t in new_vehicle_collisions(sim, factual):
         angle = abs(float(wrap_angle(yaw[a, t] - yaw[b, t])))
         kinds.append(
             "head-on" if angle > 5 * np.pi / 6 else "same way" if angle < np.pi / 6 else "crossing"
@@ -141,7 +137,7 @@ def main() -> None:
     ap.add_argument("--model", default="default")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
     args = ap.parse_args()
-    settings = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
+    settings = parse_overrides(args.set)
     loop = ClosedLoop(load_model(args.model), SimConfig(**{"guidance": "none", **settings}))
     scenes = loaded_scenes(args.data)[: args.episodes]
     rollouts, logs, kinds, flags = [], [], [], []

@@ -49,8 +49,9 @@ USER_ERRORS = (ValueError, TypeError, RuntimeError, AttributeError)
 def vector_env(num_envs: int = 1, workers: int = 1, **kwargs: Any) -> VectorEnv:
     """The vector env of ``gymnasium.make_vec("CounterScene-v0", num_envs=N, workers=W)``
     (Gymnasium passes keywords of a ``vector_entry_point`` through as they are): one
-    :class:`CounterSceneVectorEnv` for ``workers=1`` (the default), else a :class:`ShardedVectorEnv`. ``kwargs``: the vector env's
-    (``config``, ``render_mode``, ``scenario``, ``autoreset_mode``)."""
+    :class:`CounterSceneVectorEnv` for ``workers=1`` (the default), else a
+    :class:`ShardedVectorEnv`. ``kwargs``: the vector env's (``config``, ``render_mode``,
+    ``scenario``, ``autoreset_mode``)."""
     if check_count(workers, "workers", 1) == 1:
         return CounterSceneVectorEnv(num_envs, **kwargs)
     return ShardedVectorEnv(num_envs, workers, **kwargs)

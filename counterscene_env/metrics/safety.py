@@ -48,6 +48,21 @@ def agent_overlaps(scene: Scene) -> np.ndarray:
     )
 
 
+def new_vehicle_collisions(sim: Scene, factual: Scene) -> list[tuple[int, int, int]]:
+    """Pairs of vehicles other than the ego whose boxes overlap in ``sim``'s rollout but
+    never in ``factual`` (the log over the same steps): ``(a, b, t)`` with rows ``a < b`` and
+    ``t`` the first overlapping rollout step (an index into ``rollout_slice(sim)``). The
+    collisions the closed loop's traffic made that the log does not have."""
+    vehicle = sim.vehicle_mask.copy()
+    vehicle[sim.ego_index] = False
+    overlaps = agent_overlaps(sim) & vehicle[None, :, None] & vehicle[None, None, :]
+    new = np.triu(overlaps.any(0) & ~agent_overlaps(factual).any(0), 1)
+    return [
+        (int(a), int(b), int(np.argmax(overlaps[:, a, b])))
+        for a, b in zip(*np.nonzero(new), strict=True)
+    ]
+
+
 def any_collision(overlaps: np.ndarray, ego: int, include_ego: bool) -> np.ndarray:
     if include_ego:
         return overlaps.any((1, 2))
