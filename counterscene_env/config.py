@@ -84,6 +84,16 @@ class Scenario(Choice):
     ROUNDABOUT = "roundabout"
 
 
+class Yielding(Choice):
+    """How recorded intersection traffic gives way (``scene.highway``, ``scene/gap_acceptance.py``)."""
+
+    __label__ = "yielding"
+    #: highway-env's rule: target speed 0, decided twice a second, 3 s ahead.
+    HIGHWAY_ENV = "highway-env"
+    #: A stop point before the crossing, chosen by gap acceptance 6 s ahead.
+    GAP_ACCEPTANCE = "gap-acceptance"
+
+
 #: Prefix of a ScenarioNet directory in a scenario spec (``scenarionet:DIR``).
 SCENARIONET_PREFIX = "scenarionet:"
 #: Prefix of a CommonRoad scenario directory or XML file in a scenario spec (``commonroad:DIR``).

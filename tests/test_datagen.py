@@ -119,3 +119,36 @@ def test_conversion_lists_bad_files_and_refuses_a_changed_folder(tmp_path):
     _write_scenarionet(src / "a.pkl", _scenario())
     with pytest.raises(ValueError, match="different dataset"):
         convert_scenarionet(src, tmp_path / "out", shard_size=1, progress=False)
+
+
+def test_a_gap_acceptance_dataset_says_so_and_is_not_mixed_with_a_stock_one(tmp_path):
+    out = tmp_path / "d"
+    m = generate_dataset(
+        out,
+        "intersection",
+        scenes=1,
+        seed=1,
+        shard_size=1,
+        yielding="gap-acceptance",
+        progress=False,
+    )
+    assert m["yielding"] == "gap-acceptance"
+    scene = next(iter(load_scenes(shard_paths(out)[0])))
+    assert scene.metadata["yielding"] == "gap-acceptance"
+    with pytest.raises(ValueError, match="different dataset"):
+        generate_dataset(out, "intersection", scenes=1, seed=1, shard_size=1, progress=False)
+    with pytest.raises(ValueError, match="intersection only"):
+        generate_dataset(tmp_path / "m", "merge", scenes=1, yielding="gap-acceptance")
+    assert not (tmp_path / "m").exists(), "a refused call writes nothing"
+
+
+def test_a_dataset_made_before_the_yielding_option_still_resumes(tmp_path):
+    out = tmp_path / "d"
+    generate_dataset(out, "merge", scenes=1, seed=0, shard_size=1, progress=False)
+    manifest = json.loads((out / "manifest.json").read_text())
+    del manifest["yielding"]  # as written before 27 Nov 2026
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    assert (
+        generate_dataset(out, "merge", scenes=2, seed=0, shard_size=1, progress=False)["scenes"]
+        == 2
+    )

@@ -16,6 +16,7 @@ from counterscene_env.cli.common import (
     fmt,
     json_safe,
 )
+from counterscene_env.config import Yielding
 
 
 def add_generate(sub) -> None:
@@ -50,6 +51,14 @@ def add_generate(sub) -> None:
     add_seed_flag(gen, 0, "first seed (default 0)")
     gen.add_argument("--out", required=True, metavar="DIR", help="output dataset directory")
     gen.add_argument("--duration", type=float, default=13.0, help="log length in s (default 13)")
+    gen.add_argument(
+        "--yielding",
+        choices=Yielding.values(),
+        default=Yielding.HIGHWAY_ENV.value,
+        help="how intersection traffic gives way: highway-env's rule (target speed 0, decided "
+        "3 s ahead; the default) or gap-acceptance (a smooth stop before the crossing, "
+        "decided 6 s ahead)",
+    )
     gen.add_argument("--shard-size", type=int, default=50, help="seeds or files per shard")
     gen.add_argument("--workers", type=int, default=1, help="parallel worker processes")
     add_quiet_flag(gen)
@@ -63,6 +72,8 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         generate_dataset,
     )
 
+    if args.yielding != Yielding.HIGHWAY_ENV and not args.scenario:
+        raise ValueError("--yielding applies to generated traffic (--scenario), not to logs")
     start = time.perf_counter()
     blocks = {"shard_size": args.shard_size, "workers": args.workers, "progress": not args.quiet}
     if args.from_commonroad:
@@ -73,7 +84,13 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         manifest = convert_scenarionet(args.from_scenarionet, args.out, **blocks)
     else:
         manifest = generate_dataset(
-            args.out, args.scenario, args.scenes, args.seed, duration=args.duration, **blocks
+            args.out,
+            args.scenario,
+            args.scenes,
+            args.seed,
+            duration=args.duration,
+            yielding=args.yielding,
+            **blocks,
         )
     print(
         f"{manifest['scenes']} scenes in {len(manifest['shards'])} shards at {args.out} "

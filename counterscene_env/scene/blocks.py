@@ -16,12 +16,18 @@ __all__ = ["convert_commonroad_block", "convert_scenarionet_block", "generate_bl
 
 
 def generate_block(
-    out: str, k: int, scenario: str, seeds: list[int], duration: float, limit: int
+    out: str,
+    k: int,
+    scenario: str,
+    seeds: list[int],
+    duration: float,
+    limit: int,
+    yielding: str = "highway-env",
 ) -> dict:
     """Record the seeds of one block in order, stopping once ``limit`` scenes are safe."""
     from counterscene_env.scene.highway import GeneratorConfig, RejectedScene, record
 
-    cfg = GeneratorConfig(duration=duration)
+    cfg = GeneratorConfig(duration=duration, yielding=yielding)
     scenes, rejected = [], []
     for s in seeds:
         if len(scenes) >= limit:

@@ -49,13 +49,14 @@ def generate_dataset(
     shard_size: int = 50,
     workers: int = 1,
     duration: float = 13.0,
+    yielding: str = "highway-env",
     progress: bool = True,
 ) -> dict:
-    """Generate ``scenes`` safe scenes of a highway-env scenario into ``out``; returns the manifest."""
-    from counterscene_env.scene.highway import GENERATOR_VERSION, SCENARIOS
+    """Generate ``scenes`` safe scenes of a highway-env scenario into ``out``; returns the
+    manifest. ``yielding``: how intersection traffic gives way (``GeneratorConfig.yielding``)."""
+    from counterscene_env.scene.highway import GENERATOR_VERSION, check_yielding
 
-    if scenario not in SCENARIOS:
-        raise ValueError(f"unknown scenario {scenario!r}; choose one of {SCENARIOS}")
+    check_yielding(scenario, yielding)
     for key, value in (("scenes", scenes), ("shard_size", shard_size), ("workers", workers)):
         check_int(key, value, ge=1)
     check_int("seed", seed, ge=0)
@@ -67,11 +68,12 @@ def generate_dataset(
         "duration": float(duration),
         "generator_version": GENERATOR_VERSION,
     }
+    params["yielding"] = yielding
 
     def block_args(k: int, limit: int) -> tuple:
         lo = seed + k * shard_size
         seeds = list(range(lo, lo + shard_size))
-        return (generate_block, str(out), k, scenario, seeds, duration, limit)
+        return (generate_block, str(out), k, scenario, seeds, duration, limit, yielding)
 
     return _build(Path(out), params, scenes, block_args, None, workers, progress)
 
@@ -373,11 +375,17 @@ def _truncate(out: Path, manifest: dict, done: dict[int, dict], target: int) -> 
         (out / name).unlink(missing_ok=True)
 
 
+#: Dataset parameters added after datasets were first written, with the value those had.
+_DEFAULTS_BEFORE = {"yielding": "highway-env"}
+
+
 def _open_manifest(out: Path, params: dict) -> dict:
     """The manifest in ``out`` (checked against ``params``), or a fresh one for a new dataset."""
     if (out / MANIFEST).is_file():
         manifest = read_manifest(out)
-        mismatch = {k: (manifest.get(k), v) for k, v in params.items() if manifest.get(k) != v}
+        # A key the manifest predates had its default then (datasets made before it resume).
+        was = {**_DEFAULTS_BEFORE, **manifest}
+        mismatch = {k: (was.get(k), v) for k, v in params.items() if was.get(k) != v}
         if mismatch:
             detail = ", ".join(f"{k}: {a!r} there, {b!r} asked" for k, (a, b) in mismatch.items())
             raise ValueError(f"{out} holds a different dataset ({detail}); use another --out")

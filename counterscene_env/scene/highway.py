@@ -43,9 +43,10 @@ from highway_env.envs.merge_env import MergeEnv
 from highway_env.envs.roundabout_env import RoundaboutEnv
 from highway_env.road.lane import LineType, StraightLane
 
-from counterscene_env.config import Scenario
+from counterscene_env.config import Scenario, Yielding
 from counterscene_env.geometry import overlaps_over_time, wrap_angle
 from counterscene_env.scene.core import DEFAULT_DT, Scene
+from counterscene_env.scene.gap_acceptance import GapAcceptanceRoad, GapAcceptingVehicle
 from counterscene_env.scene.highway_vehicle import (
     ForwardIDMVehicle,
     defer_lane_updates,
@@ -76,6 +77,10 @@ class GeneratorConfig:
             a car into an intersection corner; such a log is not a sane factual one).
         sim_frequency: simulation rate, Hz; a multiple of 10 so that the 10 Hz log is exact.
         map_margin: the map is clipped to the recorded positions' bounding box plus this, m.
+        yielding: how intersection traffic gives way: ``highway-env`` (its rule: target speed
+            0, decided twice a second 3 s ahead) or ``gap-acceptance`` (a stop point before
+            the crossing, chosen 6 s ahead; ``scene/gap_acceptance.py``). Only the
+            intersection has crossing traffic: other roads refuse ``gap-acceptance``.
     """
 
     duration: float = 13.0
@@ -83,8 +88,10 @@ class GeneratorConfig:
     sim_frequency: int = 20
     map_margin: float = 60.0
     max_off_road: float = 1.0
+    yielding: str = Yielding.HIGHWAY_ENV.value
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "yielding", Yielding.parse(self.yielding, "yielding"))
         if self.duration < MIN_DURATION:
             raise ValueError(
                 f"duration must be at least {MIN_DURATION} s (3 s history + 10 s future), "
@@ -144,9 +151,8 @@ def generate(
 
 def record(scenario: str, seed: int, config: GeneratorConfig | None = None) -> Scene:
     """Record exactly one seed; raises :class:`RejectedScene` if it is not a safe log."""
-    if scenario not in SCENARIOS:
-        raise ValueError(f"unknown scenario {scenario!r}; choose one of {SCENARIOS}")
     cfg = config or GeneratorConfig()
+    check_yielding(scenario, cfg.yielding)
     start = time.perf_counter()
     log, ego, network, n_steps = _simulate(scenario, seed, cfg)
     scene = log.to_scene(ego, network, n_steps, cfg, scenario, seed)
@@ -157,12 +163,25 @@ def record(scenario: str, seed: int, config: GeneratorConfig | None = None) -> S
     return scene
 
 
+def check_yielding(scenario: str, yielding: str) -> None:
+    """Refuse an unknown ``scenario``, or a ``yielding`` rule other than highway-env's on a
+    road without crossing traffic."""
+    if scenario not in SCENARIOS:
+        raise ValueError(f"unknown scenario {scenario!r}; choose one of {SCENARIOS}")
+    yielding = Yielding.parse(yielding, "yielding")
+    if yielding != Yielding.HIGHWAY_ENV and scenario != Scenario.INTERSECTION:
+        raise ValueError(
+            f"yielding {yielding!r} applies to the intersection only (the one road with "
+            f"crossing traffic), not to {scenario!r}"
+        )
+
+
 def _simulate(scenario: str, seed: int, cfg: GeneratorConfig) -> tuple[_Recorder, Any, Any, int]:
     """Warm up and run the env, logging every 10 Hz step: (log, ego vehicle, road network, T)."""
     with pristine_idm_constants():
-        env = _make_env(scenario)
+        env = _make_env(scenario, cfg.yielding)
         env.reset(seed=int(seed))  # a new road and traffic from this seed alone
-        traffic = _Traffic(scenario, env)
+        traffic = _Traffic(scenario, env, _VEHICLE_CLASSES[cfg.yielding])
         ego = traffic.setup()
         frames_per_step = cfg.sim_frequency // 10
         warmup = WARMUP[scenario] if cfg.warmup is None else cfg.warmup
@@ -236,28 +255,56 @@ _ENV_CONFIG = {
     "intersection": {"initial_vehicle_count": 10, "spawn_probability": 0.6},
     "roundabout": {},
 }
-_VEHICLE_TYPE = f"{ForwardIDMVehicle.__module__}.ForwardIDMVehicle"
+#: The recorded traffic's vehicle class per yielding rule.
+_VEHICLE_CLASSES = {
+    Yielding.HIGHWAY_ENV.value: ForwardIDMVehicle,
+    Yielding.GAP_ACCEPTANCE.value: GapAcceptingVehicle,
+}
 
 
-#: One highway-env env per scenario, built on first use: building one (its spaces, a first
-#: road) took a seventh of each scene's generation, and ``reset(seed=...)`` rebuilds the road
-#: and the traffic from the seed alone, so a reused env records exactly what a new one would.
-_ENVS: dict[str, Any] = {}
+class _GapAcceptanceIntersectionEnv(IntersectionEnv):
+    """highway-env's intersection on a :class:`GapAcceptanceRoad` (same network, same draws)."""
+
+    def _make_road(self) -> None:
+        super()._make_road()
+        road = self.road
+        self.road = GapAcceptanceRoad(
+            network=road.network,
+            np_random=road.np_random,
+            record_history=road.record_history,
+            neighbour_vehicles_connected_lanes=road.neighbour_vehicles_connected_lanes,
+        )
 
 
-def _make_env(scenario: str):
-    if scenario not in _ENVS:
-        config = {**_ENV_CONFIG[scenario], "other_vehicles_type": _VEHICLE_TYPE}
-        _ENVS[scenario] = _ENV_CLASSES[scenario](config=config)
-    return _ENVS[scenario]
+#: One highway-env env per scenario and yielding rule, built on first use: building one (its
+#: spaces, a first road) took a seventh of each scene's generation, and ``reset(seed=...)``
+#: rebuilds the road and the traffic from the seed alone, so a reused env records exactly
+#: what a new one would.
+_ENVS: dict[tuple[str, str], Any] = {}
+
+
+def _make_env(scenario: str, yielding: str = Yielding.HIGHWAY_ENV.value):
+    key = (scenario, yielding)
+    if key not in _ENVS:
+        vehicle = _VEHICLE_CLASSES[yielding]
+        config = {
+            **_ENV_CONFIG[scenario],
+            "other_vehicles_type": f"{vehicle.__module__}.{vehicle.__name__}",
+        }
+        cls = _ENV_CLASSES[scenario]
+        if yielding == Yielding.GAP_ACCEPTANCE:
+            cls = _GapAcceptanceIntersectionEnv
+        _ENVS[key] = cls(config=config)
+    return _ENVS[key]
 
 
 class _Traffic:
     """Per-scenario set-up and per-frame housekeeping around ``road.act(); road.step(dt)``."""
 
-    def __init__(self, scenario: str, env) -> None:
+    def __init__(self, scenario: str, env, vehicle_class: type = ForwardIDMVehicle) -> None:
         self.scenario = scenario
         self.env = env
+        self.vehicle_class = vehicle_class
         self.road = env.road
         self.rng = env.np_random
         self.time = 0.0
@@ -268,7 +315,7 @@ class _Traffic:
         """Replace controlled vehicles by IDM/MOBIL ones, add traffic; return the ego vehicle."""
         ego = None
         for controlled in list(self.env.controlled_vehicles):
-            idm = ForwardIDMVehicle.create_from(controlled)
+            idm = self.vehicle_class.create_from(controlled)
             self.road.vehicles[self.road.vehicles.index(controlled)] = idm
             ego = ego or idm
         if self.scenario == "merge":
@@ -305,7 +352,7 @@ class _Traffic:
         position = lane.position(longitudinal, 0.0)
         if any(np.linalg.norm(v.position - position) < 15.0 for v in self.road.vehicles):
             return None
-        vehicle = ForwardIDMVehicle.make_on_lane(self.road, lane_index, longitudinal, speed=speed)
+        vehicle = self.vehicle_class.make_on_lane(self.road, lane_index, longitudinal, speed=speed)
         if destination is not None:
             vehicle.plan_route_to(destination)
         vehicle.randomize_behavior()
@@ -404,6 +451,7 @@ class _Recorder:
                 else "unknown",
                 "sim_frequency": cfg.sim_frequency,
                 "warmup_s": WARMUP[scenario] if cfg.warmup is None else cfg.warmup,
+                "yielding": cfg.yielding,
             },
         )
 

@@ -14,6 +14,7 @@ from collections.abc import Iterator
 
 from highway_env.vehicle.behavior import IDMVehicle
 
+from counterscene_env.scene.gap_acceptance import GapAcceptingVehicle
 from counterscene_env.scene.highway_vehicle import ForwardIDMVehicle
 
 __all__ = ["idm_defaults", "pristine_idm_constants"]
@@ -47,7 +48,7 @@ def _set_idm_constants(values: dict) -> None:
 
 _MISSING = object()
 _IDM_NAMES = ("DISTANCE_WANTED", "COMFORT_ACC_MAX", "COMFORT_ACC_MIN", "TIME_WANTED", "DELTA")
-_IDM_CLASSES = (IDMVehicle, ForwardIDMVehicle)
+_IDM_CLASSES = (IDMVehicle, ForwardIDMVehicle, GapAcceptingVehicle)
 #: highway-env's IDM constants as this module found them at import, before any of our envs
 #: existed (``counterscene_env`` is imported before a user builds highway-env envs with it).
 _IDM_DEFAULTS = {(c, n): c.__dict__.get(n, _MISSING) for c in _IDM_CLASSES for n in _IDM_NAMES}
