@@ -67,8 +67,8 @@ def generate_dataset(
         "shard_size": int(shard_size),
         "duration": float(duration),
         "generator_version": GENERATOR_VERSION,
+        "yielding": yielding,
     }
-    params["yielding"] = yielding
 
     def block_args(k: int, limit: int) -> tuple:
         lo = seed + k * shard_size

@@ -163,7 +163,7 @@ def _stop_distance(a, b, path_a, path_b) -> float | None:
         return None  # a is in the zone: it clears it rather than stop in it
     b_in_zone = kb[0] == 0
     if not b_in_zone and RegulatedRoad.respect_priorities(a, b) is not a:
-        return None  # b gives way to a (respect_priorities names who gives way), and b is not in the zone yet
+        return None  # b gives way to a (respect_priorities names who gives way)
     # Times in the zone [s]. b at its speed; a b still in the zone where its path ends (at
     # the horizon, or where it stands) stays in it.
     if b.speed < STILL_SPEED:
