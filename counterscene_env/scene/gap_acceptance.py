@@ -78,15 +78,16 @@ class GapAcceptingVehicle(ForwardIDMVehicle):
         """IDM's acceleration, and for this car no more than IDM's braking for a stopped car
         ``stop_distance`` ahead [m/s^2]: ``a_max (1 - (v/v0)^delta - (s*/s)^2)``, ``s* = s0 +
         v T + v^2 / (2 sqrt(a_max b))`` with ``s0`` = :data:`STOP_GAP` and the car's own
-        ``T``, ``a_max`` and ``b``."""
+        ``T``, ``a_max`` and ``b``, ``v0`` its target speed (not capped at the lane's limit,
+        as IDM's free-road term is)."""
         accel = super().acceleration(ego_vehicle, front_vehicle, rear_vehicle)
         if ego_vehicle is not self or self.stop_distance is None:
             return accel
         v = max(self.speed, 0.0)
-        v0 = max(float(getattr(self, "target_speed", 0.0) or 0.0), 1e-2)
         ab = self.COMFORT_ACC_MAX * -self.COMFORT_ACC_MIN
         s_star = STOP_GAP + v * self.TIME_WANTED + v * v / (2 * np.sqrt(ab))
         s = max(self.stop_distance, 0.1)
+        v0 = max(self.target_speed, 1e-2)
         stop = self.COMFORT_ACC_MAX * (1 - (v / v0) ** self.DELTA - (s_star / s) ** 2)
         return min(accel, stop)
 
@@ -99,24 +100,21 @@ class GapAcceptingVehicle(ForwardIDMVehicle):
 
 class GapAcceptanceRoad(RegulatedRoad):
     """highway-env's regulated road whose give-way rule is a stop point chosen by gap
-    acceptance (the module docstring); cars other than :class:`GapAcceptingVehicle` get
-    highway-env's rule unchanged."""
+    acceptance (the module docstring). Only :class:`GapAcceptingVehicle` cars take part
+    (the generator makes every recorded car one); others get no give-way rule."""
 
     REGULATION_FREQUENCY = round(1 / DECISION_PERIOD)
 
     def enforce_road_rules(self) -> None:
         cars = [v for v in self.vehicles if isinstance(v, GapAcceptingVehicle)]
-        paths = {id(v): _path(v) for v in cars}
-        stops: dict[int, float] = {}
-        for a in cars:
-            for b in cars:
-                if a is b:
-                    continue
-                d = _stop_distance(a, b, paths[id(a)], paths[id(b)])
-                if d is not None:
-                    stops[id(a)] = min(stops.get(id(a), np.inf), d)
-        for v in cars:
-            v.stop_distance = stops.get(id(v))
+        paths = [_path(v) for v in cars]
+        for a, path_a in zip(cars, paths, strict=True):
+            stops = [
+                _stop_distance(a, b, path_a, path_b)
+                for b, path_b in zip(cars, paths, strict=True)
+                if b is not a
+            ]
+            a.stop_distance = min((d for d in stops if d is not None), default=None)
 
 
 def _path(v) -> tuple[np.ndarray, np.ndarray, int]:
@@ -176,7 +174,7 @@ def _stop_distance(a, b, path_a, path_b) -> float | None:
     # a's window is the widest its speed may make it: it enters as if at its target speed
     # (a car that goes accelerates) and leaves as if at max(speed, GO_SPEED). Entering at
     # its current speed instead let a slowing car accept a gap, set off, and brake again.
-    fast = max(a.speed, float(getattr(a, "target_speed", 0.0) or 0.0), GO_SPEED)
+    fast = max(a.speed, a.target_speed, GO_SPEED)
     slow = max(a.speed, GO_SPEED)
     t_a = (ka[0] * SPACING / fast, (ka[-1] + 1) * SPACING / slow)
     if t_b[0] < t_a[1] + GAP and t_a[0] < t_b[1] + GAP:
