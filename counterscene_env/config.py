@@ -162,6 +162,17 @@ class PredictionTarget(Choice):
     EPSILON = "epsilon"
 
 
+class PlanFeatures(Choice):
+    """What the denoiser's future tokens read of where the agents' plans go (docs/world_model.md,
+    "Network"): nothing (the paper), the noisy actions rolled out, or the previous denoising
+    step's clean prediction rolled out (self-conditioning)."""
+
+    __label__ = "plan_features"
+    NONE = "none"
+    NOISY = "noisy"
+    SELF = "self"
+
+
 class WindowCentres(Choice):
     """Whom training windows are centred on: the scene's ego only, or every vehicle in turn."""
 

@@ -794,6 +794,58 @@ def test_agent_centric_map_starts_silent_and_then_steers(scene_batch):
     assert not torch.allclose(sample(local), sample(plain))
 
 
+@pytest.mark.parametrize("mode", ["noisy", "self"])
+def test_plan_features_start_silent_then_read_where_the_other_agents_plans_go(mode, scene_batch):
+    """The plan features start at zero output, so a model with them predicts exactly what the
+    same weights without them predict (a fine-tune of an older checkpoint starts there). Once
+    trained they make one agent's output depend on where another agent's noisy plan takes
+    it, and the training loss reaches their weights."""
+    plain = _model(TINY)
+    planned = WorldModel(TINY.replace(plan_features=mode)).eval()
+    missing, unexpected = planned.load_state_dict(plain.state_dict(), strict=False)
+    assert not unexpected and missing
+    assert all(k.startswith(("denoiser.plan_in.", "denoiser.pair_mlp.")) for k in missing)
+
+    def sample(m):
+        with torch.no_grad():
+            return m.sample(scene_batch, 2, torch.Generator().manual_seed(3)).trajectory
+
+    torch.testing.assert_close(sample(planned), sample(plain), rtol=0, atol=0)
+
+    # The loss reaches both new modules (their last layers start at zero, not frozen).
+    planned.train()
+    loss = training_loss(planned, scene_batch, torch.Generator().manual_seed(0))["loss"]
+    loss.backward()
+    for name in ("plan_in", "pair_mlp"):
+        grad = getattr(planned.denoiser, name)[-1].weight.grad
+        assert grad is not None and grad.abs().sum() > 0, name
+    planned.eval()
+
+    with torch.no_grad():
+        g = torch.Generator().manual_seed(1)
+        planned.denoiser.pair_mlp[-1].weight.normal_(0.0, 1.0, generator=g)
+        batch = {k: v[:1] for k, v in scene_batch.items()}
+        valid = planned.agent_mask(batch)
+        assert int(valid.sum()) >= 2
+        state = planned.current_state(batch)
+        ctx = planned.context(batch)
+        x = torch.randn(1, TINY.num_agents, TINY.action_tokens, 2, generator=g)
+        t = torch.tensor([50])
+        other = int(valid[0].nonzero()[1])
+        moved = x.clone()
+        moved[0, other, :, 1] += 3.0  # another agent's plan turns away
+        if mode == "noisy":
+            a = planned.denoise(x, t, ctx, state, valid)
+            b = planned.denoise(moved, t, ctx, state, valid)
+        else:  # the same noisy actions; the previous prediction of the other agent turns
+            a = planned.denoise(x, t, ctx, state, valid, x)
+            b = planned.denoise(x, t, ctx, state, valid, moved)
+    # Agent 0's own noisy actions are the same; only where the other agent goes changed.
+    assert not torch.allclose(a[0, 0], b[0, 0])
+    with pytest.raises(ValueError, match="rolled-out plan"):
+        planned.denoiser(x, t, ctx)
+
+
 def test_weighted_batches_fill_each_source_to_its_share():
     """``_weighted_batches``: source shares follow the weights whatever the window counts,
     and step k's draw is the same whether the run starts at 0 or resumes at k."""

@@ -398,6 +398,25 @@ def test_init_adds_the_agent_centric_map_but_never_drops_it(dataset, tmp_path, c
     assert "another architecture" in capsys.readouterr().err
 
 
+def test_init_adds_the_plan_features_but_never_drops_them(trained, dataset, tmp_path, capsys):
+    fine = tmp_path / "fine"
+    assert (
+        _train(dataset, fine, 2, "--init", str(trained), "--lr", "0", "--set", "plan_features=self")
+        == 0
+    )
+    start, model = load_model(trained), load_model(fine)
+    assert (start.config.plan_features, model.config.plan_features) == ("none", "self")
+    new = model.state_dict()
+    for name, tensor in start.state_dict().items():
+        assert torch.equal(tensor, new[name]), name
+    assert (
+        not new["denoiser.plan_in.2.weight"].any() and not new["denoiser.pair_mlp.2.weight"].any()
+    )
+    capsys.readouterr()
+    assert _train(dataset, tmp_path / "back", 2, "--init", str(fine)) == 1
+    assert "another architecture" in capsys.readouterr().err
+
+
 def test_init_may_change_which_lanes_the_window_holds(dataset, tmp_path):
     # The window's lanes size no tensor: a model trained on the ego-centred map of 32 lanes
     # seeds the default's agent-anchored 48, every tensor carried over.

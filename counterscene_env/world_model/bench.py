@@ -95,7 +95,9 @@ def _bench(model: WorldModel, runs: int, samples: int) -> dict[str, Any]:
         t = torch.full((samples,), c.num_train_timesteps - 1)
         counter = FlopCounterMode(display=False)
         with counter:
-            model.denoiser(x, t, ctx)
+            state = model.current_state(batch).repeat_interleave(samples, 0)
+            valid = model.agent_mask(batch).repeat_interleave(samples, 0)
+            model.denoise(x, t, ctx, state, valid)
         flops = counter.get_total_flops()
 
     model.sample(batch, samples, g)  # warm-up

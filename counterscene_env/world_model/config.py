@@ -16,6 +16,7 @@ from typing import Any
 
 from counterscene_env.config import (
     LaneAnchors,
+    PlanFeatures,
     PredictionTarget,
     Sampler,
     check_fields,
@@ -61,6 +62,16 @@ class ModelConfig:
         dropout: dropout inside the blocks during training.
         graph_dropout: probability of dropping one CIG edge bias during training (paper: 0.1).
         causal_temporal: causal instead of bidirectional temporal attention over future tokens.
+        plan_features: what each future token reads of where its agent's plan goes:
+            ``"none"`` (the paper's denoiser, and checkpoints without the key): the action
+            alone, so two agents' paths meet only through what the network integrates from
+            their action sequences; ``"noisy"``: the unicycle rollout of the noisy tokens at
+            the token's last step (position, course, speed); ``"self"``: the rollout of the
+            previous denoising step's clean prediction (self-conditioning, Chen et al. 2023;
+            at the first step, or half of the training windows, none: a flag says which).
+            With either, the social attention at each future token adds a learned per-head
+            bias of the two agents' rolled-out relative position. Measured in
+            docs/world_model.md, "The network's crossing collisions".
         prediction: what the network outputs: clean actions ``"x0"`` or the noise ``"epsilon"``.
         num_train_timesteps: K of the cosine schedule.
         sampler: default sampler, ``"ddim"`` (strided) or ``"ddpm"`` (all K steps).
@@ -113,6 +124,7 @@ class ModelConfig:
     dropout: float = 0.0
     graph_dropout: float = 0.1
     causal_temporal: bool = False
+    plan_features: str = choice_field(PlanFeatures, PlanFeatures.NONE)
     prediction: str = choice_field(PredictionTarget, PredictionTarget.X0)
     num_train_timesteps: int = 100
     sampler: str = choice_field(Sampler, Sampler.DDIM)

@@ -20,6 +20,12 @@ state and size) and the diffusion-step embedding. Each block then applies, pre-n
    zero, so a model fine-tuned from a checkpoint without it starts out identical to that one;
 5. an MLP.
 
+With ``plan_features`` each future token also gets an embedding of where its agent's plan
+takes it (the unicycle rollout of the noisy actions, or of the previous step's prediction,
+which the caller passes as ``plan``), and the social attention at each future token adds a
+per-head bias learned from the two agents' rolled-out positions (``features.pair_features``). Both start at zero output, so a model fine-tuned from a
+checkpoint without them starts out identical to that one.
+
 The head maps each future token to the network output ``[B, K, Ta, 2]``: clean normalised
 actions (x0) or the noise (epsilon).
 """
@@ -34,6 +40,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from counterscene_env.world_model import features
 from counterscene_env.world_model.cig import NUM_EDGE_FEATURES
 from counterscene_env.world_model.config import ModelConfig
 
@@ -41,6 +48,8 @@ NEG = -1e9  # additive mask value: large but finite, so no softmax ever sees a r
 HISTORY_FEATURES = 9  # x, y, dx, dy, cos yaw, sin yaw, speed, valid, age
 AGENT_FEATURES = 9  # x, y, cos/sin heading, cos/sin course, speed, length, width
 MAP_FEATURES = 5  # x, y, direction x, direction y, width
+PLAN_FEATURES = 6  # x, y, cos course, sin course, speed, given (``features.plan_features``)
+PAIR_FEATURES = 4  # ahead, aside, distance, contact (``features.pair_features``)
 
 
 @dataclass
@@ -178,14 +187,21 @@ class Block(nn.Module):
         return MapMemory(self.map.keys_values(ctx.map_tokens), local)
 
     def forward(
-        self, x: torch.Tensor, ctx: Context, memory: MapMemory | None = None
+        self,
+        x: torch.Tensor,
+        ctx: Context,
+        memory: MapMemory | None = None,
+        social: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """``x``: ``[B, K, L, d]``; ``memory``: this block's ``remember(ctx)``, if kept."""
+        """``x``: ``[B, K, L, d]``; ``memory``: this block's ``remember(ctx)``, if kept;
+        ``social``: the social bias ``[B, L, heads, K, K]`` when it varies by token
+        (``plan_features``), else ``ctx.social_bias`` is used."""
         B, K, L, d = x.shape
         y = self.norms[0](x)
         x = x + self.temporal(y, y, ctx.temporal_bias)
         y = self.norms[1](x).transpose(1, 2)  # [B, L, K, d]: attend across agents per position
-        x = x + self.social(y, y, ctx.social_bias).transpose(1, 2)
+        bias = ctx.social_bias if social is None else social
+        x = x + self.social(y, y, bias).transpose(1, 2)
         y = self.norms[2](x).reshape(B, K * L, d)
         kv = None if memory is None else memory.map
         x = x + self.map(y, ctx.map_tokens, ctx.map_bias, kv).reshape(B, K, L, d)
@@ -238,6 +254,12 @@ class Denoiser(nn.Module):
             self.local_point_in = _mlp(MAP_FEATURES, d, d)
             self.local_lane_out = _mlp(d, d, d)
             self.local_no_map = nn.Parameter(torch.zeros(1, 1, 1, d))
+        if cfg.plan_features != "none":
+            self.plan_in = _mlp(PLAN_FEATURES, d, d)
+            self.pair_mlp = _mlp(PAIR_FEATURES, 32, cfg.num_heads)
+            for last in (self.plan_in[-1], self.pair_mlp[-1]):  # start as the model without
+                nn.init.zeros_(last.weight)
+                nn.init.zeros_(last.bias)
         self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.num_blocks))
         self.norm_out = nn.LayerNorm(d)
         self.head = nn.Linear(d, 2)
@@ -355,15 +377,38 @@ class Denoiser(nn.Module):
         return dataclasses.replace(ctx, memory=[block.remember(ctx) for block in self.blocks])
 
     def forward(
-        self, noisy_actions: torch.Tensor, timesteps: torch.Tensor, ctx: Context
+        self,
+        noisy_actions: torch.Tensor,
+        timesteps: torch.Tensor,
+        ctx: Context,
+        plan: torch.Tensor | None = None,
+        valid: torch.Tensor | None = None,
+        given: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Network output ``[B, K, Ta, 2]`` for noisy normalised actions ``[B, K, Ta, 2]`` at
-        diffusion steps ``timesteps [B]``."""
+        diffusion steps ``timesteps [B]``.
+
+        With ``plan_features``, ``plan`` is ``[B, K, Ta, 4]``, a plan rolled out to each
+        token's last step (x [m], y [m], course [rad], speed [m/s]), ``valid`` ``[B, K]`` the
+        agents planned and ``given`` ``[B]`` whether the plan is a real one
+        (``WorldModel.denoise`` passes them)."""
         step = self.step_embedding(timesteps)[:, None, None, :]
-        x = torch.cat([ctx.history, self.action_in(noisy_actions)], dim=2)
+        actions = self.action_in(noisy_actions)
+        social = None
+        if self.cfg.plan_features != "none":
+            if plan is None or valid is None or given is None:
+                raise ValueError("this model needs the rolled-out plan and its validity")
+            actions = actions + self.plan_in(features.plan_features(plan, valid, given))
+            pair = self.pair_mlp(features.pair_features(plan, valid))  # [B, Ta, K, K, heads]
+            pair = pair.permute(0, 1, 4, 2, 3)
+            Hh = ctx.history.shape[2]
+            # History tokens keep the CIG bias alone: their positions are known, not planned.
+            pair = torch.cat([pair.new_zeros(pair.shape[0], Hh, *pair.shape[2:]), pair], 1)
+            social = ctx.social_bias + pair  # [B, L, heads, K, K]
+        x = torch.cat([ctx.history, actions], dim=2)
         x = x + self.position + ctx.agent[:, :, None, :] + step
         memory = ctx.memory or [None] * len(self.blocks)
         for block, kept in zip(self.blocks, memory, strict=True):
-            x = block(x, ctx, kept)
+            x = block(x, ctx, kept, social)
         Hh = ctx.history.shape[2]
         return self.head(self.norm_out(x[:, :, Hh:]))

@@ -142,3 +142,70 @@ def local_map(
     )
     ok = (near <= local_radius) & valid[..., None]
     return torch.where(ok[..., None, None], feat, 0.0), ok
+
+
+CONTACT_SCALE = 5.0  # m: the distance over which the pair feature exp(-d / 5 m) fades
+
+
+def plan_features(plan: torch.Tensor, valid: torch.Tensor, given: torch.Tensor) -> torch.Tensor:
+    """Where each agent's plan takes it (``ModelConfig.plan_features``).
+
+    Args:
+        plan: ``[B, K, Ta, 4]`` a plan's rollout at each action token's last step: x [m],
+            y [m], course [rad], speed [m/s] (window frame).
+        valid: ``[B, K]`` bool.
+        given: ``[B]`` bool, windows whose plan is a real one (self-conditioning's first
+            step and half of its training windows have none: their ``plan`` is the
+            rollout of zero actions, and this flag tells the network so).
+
+    Returns:
+        ``[B, K, Ta, 6]``: position [/20 m], course (cos, sin), speed [/10 m/s], the flag;
+        zero for slots not ``valid``.
+    """
+    x, y, course, v = plan.unbind(-1)
+    flag = given.to(plan.dtype)[:, None, None].expand_as(x)
+    feat = torch.stack(
+        [
+            x / POSITION_SCALE,
+            y / POSITION_SCALE,
+            torch.cos(course),
+            torch.sin(course),
+            v / SPEED_SCALE,
+            flag,
+        ],
+        -1,
+    )
+    return torch.where(valid[..., None, None], feat, 0.0)
+
+
+def pair_features(plan: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Each pair of agents' rolled-out plans at every future token, for the social bias.
+
+    Args:
+        plan: ``[B, K, Ta, 4]`` as in :func:`plan_features`.
+        valid: ``[B, K]`` bool.
+
+    Returns:
+        ``[B, Ta, K, K, 4]``: for query agent i and key agent j, j's position in i's frame
+        (origin at i's planned position, x along i's planned course) [/20 m], their distance
+        [/20 m] and ``exp(-d / 5 m)``; zero unless both are ``valid``. Two cars about to
+        share a place are near 0 in the first three and near 1 in the last.
+    """
+    p = plan.transpose(1, 2)  # [B, Ta, K, 4]
+    rel = p[:, :, None, :, :2] - p[:, :, :, None, :2]  # [B, Ta, K(i), K(j), 2]: j - i
+    cos = torch.cos(p[..., 2])[..., None]
+    sin = torch.sin(p[..., 2])[..., None]
+    ahead = cos * rel[..., 0] + sin * rel[..., 1]
+    aside = -sin * rel[..., 0] + cos * rel[..., 1]
+    d = rel.norm(dim=-1)
+    feat = torch.stack(
+        [
+            ahead / POSITION_SCALE,
+            aside / POSITION_SCALE,
+            d / POSITION_SCALE,
+            torch.exp(-d / CONTACT_SCALE),
+        ],
+        -1,
+    )
+    both = (valid[:, :, None] & valid[:, None, :])[:, None, :, :, None]
+    return torch.where(both, feat, 0.0)

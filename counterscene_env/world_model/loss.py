@@ -65,13 +65,22 @@ def training_loss(
     noise = torch.randn(x0.shape, generator=generator, device=device)
     noisy = model.scheduler.add_noise(x0, noise, t)
     ctx = model.context(batch, c.graph_dropout if model.training else 0.0, generator)
-    out = model.denoiser(noisy, t, ctx)
+    state, valid = hist[..., -1, :], model.agent_mask(batch)
+    previous = given = None
+    if c.plan_features == "self":
+        # Self-conditioning (Chen et al. 2023): half of the windows first get the network's
+        # own clean prediction without a plan, and learn to refine it; the rest learn the
+        # first step, which has none. No gradient flows through the first prediction.
+        given = torch.rand(B, generator=generator, device=device) < 0.5
+        with torch.no_grad():
+            first = model.denoise(noisy, t, ctx, state, valid)
+            previous = first if c.prediction == "x0" else _x0(model, noisy, first, t)
+    out = model.denoise(noisy, t, ctx, state, valid, previous, given)
 
     if c.prediction == "x0":
         pred_x0, goal = out, x0
     else:
-        abar = model.scheduler.alphas_cumprod.to(device)[t].float().reshape(B, 1, 1, 1)
-        pred_x0, goal = (noisy - (1 - abar).sqrt() * out) / abar.sqrt(), noise
+        pred_x0, goal = _x0(model, noisy, out, t), noise
     w = tok_ok[..., None].float()
     action = ((out - goal) ** 2 * w).sum() / (w.sum() * 2).clamp(min=1)
 
@@ -101,3 +110,9 @@ def training_loss(
         "off_lane": off_lane.detach(),
         "overlap": overlap.detach(),
     }
+
+
+def _x0(model: WorldModel, noisy: torch.Tensor, eps: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """The clean actions ``[B, K, Ta, 2]`` that a noise prediction ``eps`` implies at ``t``."""
+    abar = model.scheduler.alphas_cumprod.to(noisy.device)[t].float().reshape(-1, 1, 1, 1)
+    return (noisy - (1 - abar).sqrt() * eps) / abar.sqrt()

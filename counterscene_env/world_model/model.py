@@ -154,6 +154,41 @@ class WorldModel(nn.Module):
         c = self.config
         return unicycle_rollout(state, actions, c.dt, True, c.yaw_gain, c.lateral_limit)
 
+    def denoise(
+        self,
+        noisy: torch.Tensor,
+        timesteps: torch.Tensor,
+        ctx: Context,
+        state: torch.Tensor,
+        valid: torch.Tensor,
+        previous: torch.Tensor | None = None,
+        given: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """One denoiser forward: output ``[B, K, Ta, 2]`` for noisy normalised action tokens
+        ``noisy [B, K, Ta, 2]`` at diffusion steps ``timesteps [B]``, for the agents ``valid
+        [B, K]`` at their current states ``state [B, K, 4]``.
+
+        With ``plan_features="noisy"`` the noisy tokens rolled out from there are an input
+        too; with ``"self"`` the rollout of ``previous`` ``[B, K, Ta, 2]`` (the last step's
+        clean prediction, normalised) is, in the windows ``given [B]`` marks (default: all
+        when ``previous`` is passed, none otherwise); the others get zero actions rolled
+        out and a flag that says there is no plan."""
+        mode = self.config.plan_features
+        if mode == "none":
+            return self.denoiser(noisy, timesteps, ctx)
+        B = noisy.shape[0]
+        if mode == "noisy":
+            plan, given = noisy, torch.ones(B, dtype=torch.bool, device=noisy.device)
+        else:
+            if given is None:
+                given = torch.full((B,), previous is not None, device=noisy.device)
+            plan = self.normalize(torch.zeros(2, device=noisy.device)).expand_as(noisy)
+            if previous is not None:
+                plan = torch.where(given[:, None, None, None], previous, plan)
+        s = self.config.action_stride
+        rolled = self.rollout(plan, state)[..., s - 1 :: s, :]  # each token's last step
+        return self.denoiser(noisy, timesteps, ctx, rolled, valid, given)
+
     def target_actions(
         self,
         batch: dict[str, torch.Tensor],
@@ -288,6 +323,7 @@ class WorldModel(nn.Module):
         with torch.no_grad():
             ctx = self.denoiser.remember(self.context(batch).repeat(num_samples))
         state = self.current_state(batch).repeat_interleave(num_samples, 0)
+        planned_rows = planned.repeat_interleave(num_samples, 0)
 
         step_size = c.map_guidance if map_guidance is None else map_guidance
         if step_size > 0:
@@ -313,17 +349,20 @@ class WorldModel(nn.Module):
         def randn() -> torch.Tensor:
             return torch.cat([torch.randn(draw, generator=g, device=device)[:, :K] for g in gens])
 
-        x, timesteps = self._start(randn(), init, init_steps, num_samples)
+        # ``previous``: self-conditioning's plan, the last step's clean prediction (a warm
+        # start's first step has the plan it started from).
+        x, timesteps, previous = self._start(randn(), init, init_steps, num_samples)
         for t in timesteps:
             tt = torch.full((B * num_samples,), t, device=device, dtype=torch.long)
             with torch.no_grad():
-                out = self.denoiser(x, tt, ctx)
+                out = self.denoise(x, tt, ctx, state, planned_rows, previous)
             # The last step adds no noise; eta = 0 never does.
             noise = randn() if eta > 0 and t != timesteps[-1] else None
-            x = self.scheduler.step(out, t, x, generator, eta, hook, noise).prev_sample.detach()
+            result = self.scheduler.step(out, t, x, generator, eta, hook, noise)
+            x, previous = result.prev_sample.detach(), result.pred_original_sample.detach()
         # Padding agents get zero physical actions: a clean, finite "keep going" plan.
         still = self.normalize(torch.zeros(2, device=device))
-        x = torch.where(planned.repeat_interleave(num_samples, 0)[..., None, None], x, still)
+        x = torch.where(planned_rows[..., None, None], x, still)
         steer = c.lane_steering if lane_steering is None else lane_steering
         x = self._hold(steer_onto_lanes(self, batch, x, steer, any_way), held, state)
         with torch.no_grad():
@@ -349,12 +388,13 @@ class WorldModel(nn.Module):
 
     def _start(
         self, noise: torch.Tensor, init: torch.Tensor | None, init_steps: int, num_samples: int
-    ) -> tuple[torch.Tensor, list[int]]:
-        """The first sample ``[B S, K, Ta, 2]`` and the steps to run: pure ``noise`` and every
-        step, or ``init`` noised to the level of the last ``init_steps`` (``sample``)."""
+    ) -> tuple[torch.Tensor, list[int], torch.Tensor | None]:
+        """The first sample ``[B S, K, Ta, 2]``, the steps to run and the clean plan it
+        starts from: pure ``noise``, every step and none, or ``init`` noised to the level of
+        the last ``init_steps``, those steps and ``init`` (``sample``)."""
         timesteps = self.scheduler.timesteps.tolist()
         if init is None:
-            return noise, timesteps
+            return noise, timesteps, None
         B, K = noise.shape[0] // num_samples, noise.shape[1]
         if tuple(init.shape) != (B, K, self.config.action_tokens, 2):
             raise ValueError(
@@ -362,11 +402,11 @@ class WorldModel(nn.Module):
                 f"normalised action tokens, got {list(init.shape)}"
             )
         if not 0 < init_steps < len(timesteps):
-            return noise, timesteps
+            return noise, timesteps, None
         timesteps = timesteps[-init_steps:]
         level = torch.full((noise.shape[0],), timesteps[0], dtype=torch.long, device=noise.device)
         start = init.to(noise.dtype).repeat_interleave(num_samples, 0)
-        return self.scheduler.add_noise(start, noise, level), timesteps
+        return self.scheduler.add_noise(start, noise, level), timesteps, start
 
 
 def _chain(first: GuidanceHook, second: GuidanceHook) -> GuidanceHook:

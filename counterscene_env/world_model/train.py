@@ -196,6 +196,10 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             same = same.replace(
                 local_lanes=model_cfg.local_lanes, local_radius=model_cfg.local_radius
             )
+        # So may a model without the plan features seed one with them (zero output too).
+        adds_plan = start.config.plan_features == "none" != model_cfg.plan_features
+        if adds_plan:
+            same = same.replace(plan_features=model_cfg.plan_features)
         if same != model_cfg:
             raise ValueError(
                 f"--init model {cfg.init!r} has another architecture than preset "
@@ -203,8 +207,11 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             )
         normalization = normalization or start.normalization
         model = WorldModel(model_cfg, normalization).to(device)
-        missing, unexpected = model.load_state_dict(start.state_dict(), strict=not adds_local)
-        if unexpected or any(".local" not in k for k in missing):
+        missing, unexpected = model.load_state_dict(
+            start.state_dict(), strict=not (adds_local or adds_plan)
+        )
+        new_modules = (".local", "denoiser.plan_in.", "denoiser.pair_mlp.")
+        if unexpected or any(not any(m in k for m in new_modules) for k in missing):
             raise ValueError(f"--init model {cfg.init!r}: tensors do not match the new model")
     else:
         model = WorldModel(model_cfg, normalization).to(device)
