@@ -798,7 +798,7 @@ def test_agent_centric_map_starts_silent_and_then_steers(scene_batch):
 def test_plan_features_start_silent_then_read_where_the_other_agents_plans_go(mode, scene_batch):
     """The plan features start at zero output, so a model with them predicts exactly what the
     same weights without them predict (a fine-tune of an older checkpoint starts there). Once
-    trained they make one agent's output depend on where another agent's noisy plan takes
+    trained they make one agent's output depend on where another agent's plan takes
     it, and the training loss reaches their weights."""
     plain = _model(TINY)
     planned = WorldModel(TINY.replace(plan_features=mode)).eval()

@@ -23,8 +23,9 @@ state and size) and the diffusion-step embedding. Each block then applies, pre-n
 With ``plan_features`` each future token also gets an embedding of where its agent's plan
 takes it (the unicycle rollout of the noisy actions, or of the previous step's prediction,
 which the caller passes as ``plan``), and the social attention at each future token adds a
-per-head bias learned from the two agents' rolled-out positions (``features.pair_features``). Both start at zero output, so a model fine-tuned from a
-checkpoint without them starts out identical to that one.
+per-head bias learned from the two agents' rolled-out positions (``features.pair_features``).
+Both start at zero output, so a model fine-tuned from a checkpoint without them starts out
+identical to that one.
 
 The head maps each future token to the network output ``[B, K, Ta, 2]``: clean normalised
 actions (x0) or the noise (epsilon).
