@@ -30,9 +30,10 @@ from counterscene_env.dynamics import (
     unicycle_rollout,
 )
 from counterscene_env.world_model import features, hold
+from counterscene_env.world_model.attention import Context
 from counterscene_env.world_model.cig import edge_features
 from counterscene_env.world_model.config import ModelConfig
-from counterscene_env.world_model.denoiser import Context, Denoiser
+from counterscene_env.world_model.denoiser import Denoiser
 from counterscene_env.world_model.lane_steering import steer_onto_lanes
 from counterscene_env.world_model.scheduler import CosineScheduler
 from counterscene_env.world_model.window import WindowConfig
