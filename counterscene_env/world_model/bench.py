@@ -93,10 +93,10 @@ def _bench(model: WorldModel, runs: int, samples: int) -> dict[str, Any]:
         ctx = model.context(batch).repeat(samples)
         x = torch.randn(samples, c.num_agents, c.action_tokens, 2, generator=g)
         t = torch.full((samples,), c.num_train_timesteps - 1)
+        state = model.current_state(batch).repeat_interleave(samples, 0)
+        valid = model.agent_mask(batch).repeat_interleave(samples, 0)
         counter = FlopCounterMode(display=False)
         with counter:
-            state = model.current_state(batch).repeat_interleave(samples, 0)
-            valid = model.agent_mask(batch).repeat_interleave(samples, 0)
             model.denoise(x, t, ctx, state, valid)
         flops = counter.get_total_flops()
 

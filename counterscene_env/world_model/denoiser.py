@@ -234,6 +234,7 @@ class Denoiser(nn.Module):
         (``WorldModel.denoise`` passes them)."""
         step = self.step_embedding(timesteps)[:, None, None, :]
         actions = self.action_in(noisy_actions)
+        Hh = ctx.history.shape[2]
         social = None
         if self.cfg.plan_features != "none":
             if plan is None or valid is None or given is None:
@@ -241,7 +242,6 @@ class Denoiser(nn.Module):
             actions = actions + self.plan_in(features.plan_features(plan, valid, given))
             pair = self.pair_mlp(features.pair_features(plan, valid))  # [B, Ta, K, K, heads]
             pair = pair.permute(0, 1, 4, 2, 3)
-            Hh = ctx.history.shape[2]
             # History tokens keep the CIG bias alone: their positions are known, not planned.
             pair = torch.cat([pair.new_zeros(pair.shape[0], Hh, *pair.shape[2:]), pair], 1)
             social = ctx.social_bias + pair  # [B, L, heads, K, K]
@@ -250,5 +250,4 @@ class Denoiser(nn.Module):
         memory = ctx.memory or [None] * len(self.blocks)
         for block, kept in zip(self.blocks, memory, strict=True):
             x = block(x, ctx, kept, social)
-        Hh = ctx.history.shape[2]
         return self.head(self.norm_out(x[:, :, Hh:]))
