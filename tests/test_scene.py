@@ -189,3 +189,34 @@ def test_a_shard_with_non_finite_map_geometry_is_refused_with_the_reason(tmp_pat
     np.savez(path, **arrays)
     with pytest.raises(ValueError, match=message):
         load_scenes(path)
+
+
+def test_the_intersection_map_carries_each_lanes_right_of_way(generated, tmp_path):
+    """highway-env's intersection gives its horizontal road the right of way (lane priority 3
+    straight, 2 turning left; the vertical road 1 and 0): every centre line carries its lane's,
+    through a shard and from a shard written before the field existed. Imported maps carry
+    none (0)."""
+    from counterscene_env.scene.shards import load_scenes, save_scenes
+
+    scene = generated["intersection"]
+    road = scene.road
+    by_lane = {float(lane.priority) for lane in road.network.lanes_list()}
+    assert by_lane == {0.0, 1.0, 2.0, 3.0} and set(road.lane_priorities) == by_lane
+    # Each centre line's priority is that of the network lane at its midpoint and heading.
+    for line, priority in zip(road.lane_centerlines, road.lane_priorities, strict=True):
+        mid = line[len(line) // 2]
+        heading = np.arctan2(*(line[len(line) // 2 + 1] - mid)[::-1])
+        lane = road.network.get_lane(road.network.get_closest_lane_index(mid, heading))
+        assert lane.priority == priority
+    path = tmp_path / "scene.npz"
+    save_scenes([scene], path)
+    assert np.array_equal(load_scenes(path)[0].road.lane_priorities, road.lane_priorities)
+    arrays = dict(np.load(path, allow_pickle=False))
+    del arrays["0/road_priorities"]  # a shard of an older version
+    np.savez(path, **arrays)
+    assert np.array_equal(load_scenes(path)[0].road.lane_priorities, road.lane_priorities)
+    assert not generated["highway"].road.lane_priorities.any()
+    a = np.array([[0.0, 0.0], [50.0, 0.0]])
+    assert RoadMap.from_centerlines([a], [3.5]).lane_priorities.tolist() == [0.0]
+    with pytest.raises(ValueError, match="1 centre lines but 2 lane priorities"):
+        RoadMap(road.network, road.drivable_area, [a], [3.5], None, [1.0, 2.0])

@@ -756,13 +756,13 @@ def test_local_map_is_each_agents_nearest_lanes_in_its_own_frame():
     )
     lanes = torch.cat([lanes, torch.zeros(1, 3, 2)])[None]  # [1, 3, 3, 2]
     direction = torch.tensor([0.0, 1.0]).expand(1, 3, 3, 2)
-    width = torch.full((1, 3, 3, 1), 4.0)
+    extras = torch.full((1, 3, 3, 1), 4.0 / 4.0)  # lane_features' width / 4 m
     lanes_ok = torch.tensor([[True, True, False]])
     # Agent 0 stands 5 m south of the lane's start, heading north; agent 1 is padding.
     position = torch.tensor([[[10.0, -5.0], [0.0, 0.0]]])
     course = torch.tensor([[np.pi / 2, 0.0]])
     valid = torch.tensor([[True, False]])
-    feat, ok = local_map(lanes, direction, width, lanes_ok, position, course, valid, 2, 30.0)
+    feat, ok = local_map(lanes, direction, extras, lanes_ok, position, course, valid, 2, 30.0)
     assert feat.shape == (1, 2, 2, 3, 5)
     # Nearest first: lane 0, then lane 1, which is beyond local_radius.
     assert ok.tolist() == [[[True, False], [False, False]]]
@@ -770,7 +770,7 @@ def test_local_map_is_each_agents_nearest_lanes_in_its_own_frame():
     ahead = torch.tensor([[5.0, 0.0], [10.0, 0.0], [15.0, 0.0]]) / scale
     torch.testing.assert_close(feat[0, 0, 0, :, :2], ahead)  # straight ahead along its x axis
     torch.testing.assert_close(feat[0, 0, 0, :, 2:4], torch.tensor([1.0, 0.0]).expand(3, 2))
-    torch.testing.assert_close(feat[0, 0, 0, :, 4], torch.ones(3))  # 4 m / 4 m
+    torch.testing.assert_close(feat[0, 0, 0, :, 4], torch.ones(3))  # the width, unrotated
     assert not feat[0, 1].any() and not feat[0, 0, 1].any()  # masked entries carry zeros
 
 
@@ -844,6 +844,41 @@ def test_plan_features_start_silent_then_read_where_the_other_agents_plans_go(mo
     assert not torch.allclose(a[0, 0], b[0, 0])
     with pytest.raises(ValueError, match="rolled-out plan"):
         planned.denoiser(x, t, ctx)
+
+
+def test_lane_priority_starts_silent_then_tells_who_has_the_right_of_way(scene_batch):
+    """The right of way enters at zero, so a model reading it predicts exactly what the same
+    weights without it predict (a fine-tune of an older checkpoint starts there); the loss
+    reaches it, and once its weights are non-zero the prediction depends on which lanes have
+    the right of way."""
+    assert scene_batch["map_priority"].any()  # the intersection's window carries it
+    plain = _model(TINY)
+    with torch.no_grad():  # as trained: the agent-centric map's attention starts at zero
+        for block in plain.denoiser.blocks:
+            block.local.out.weight.normal_(0.0, 0.5, generator=torch.Generator().manual_seed(1))
+    ruled = WorldModel(TINY.replace(lane_priority=True)).eval()
+    missing, unexpected = ruled.load_state_dict(plain.state_dict(), strict=False)
+    assert not unexpected
+    assert sorted(missing) == ["denoiser.local_priority_in.weight", "denoiser.priority_in.weight"]
+
+    def sample(m, batch=scene_batch):
+        with torch.no_grad():
+            return m.sample(batch, 2, torch.Generator().manual_seed(3)).trajectory
+
+    torch.testing.assert_close(sample(ruled), sample(plain), rtol=0, atol=0)
+    ruled.train()
+    training_loss(ruled, scene_batch, torch.Generator().manual_seed(0))["loss"].backward()
+    for name in ("priority_in", "local_priority_in"):
+        grad = getattr(ruled.denoiser, name).weight.grad
+        assert grad is not None and grad.abs().sum() > 0, name
+    ruled.eval()
+    with torch.no_grad():
+        g = torch.Generator().manual_seed(1)
+        ruled.denoiser.priority_in.weight.normal_(0.0, 1.0, generator=g)
+        ruled.denoiser.local_priority_in.weight.normal_(0.0, 1.0, generator=g)
+    swapped = dict(scene_batch, map_priority=3.0 - scene_batch["map_priority"])
+    assert not torch.allclose(sample(ruled), sample(ruled, swapped))
+    assert torch.equal(sample(plain), sample(plain, swapped))  # the plain model never reads it
 
 
 def test_weighted_batches_fill_each_source_to_its_share():

@@ -417,6 +417,23 @@ def test_init_adds_the_plan_features_but_never_drops_them(trained, dataset, tmp_
     assert "another architecture" in capsys.readouterr().err
 
 
+def test_init_adds_the_lanes_right_of_way_but_never_drops_it(trained, dataset, tmp_path, capsys):
+    fine = tmp_path / "fine"
+    args = ("--init", str(trained), "--lr", "0", "--set", "lane_priority=true")
+    assert _train(dataset, fine, 2, *args) == 0
+    start, model = load_model(trained), load_model(fine)
+    assert (start.config.lane_priority, model.config.lane_priority) == (False, True)
+    new = model.state_dict()
+    for name, tensor in start.state_dict().items():
+        assert torch.equal(tensor, new[name]), name
+    added = sorted(set(new) - set(start.state_dict()))
+    assert added == ["denoiser.local_priority_in.weight", "denoiser.priority_in.weight"]
+    assert not any(new[name].any() for name in added)
+    capsys.readouterr()
+    assert _train(dataset, tmp_path / "back", 2, "--init", str(fine)) == 1
+    assert "another architecture" in capsys.readouterr().err
+
+
 def test_init_may_change_which_lanes_the_window_holds(dataset, tmp_path):
     # The window's lanes size no tensor: a model trained on the ego-centred map of 32 lanes
     # seeds the default's agent-anchored 48, every tensor carried over.

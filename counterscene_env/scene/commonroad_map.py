@@ -68,4 +68,7 @@ def road_from_lanelets(lanelets: Iterable[Any], source: str) -> tuple[RoadMap, d
         "adjacent_same_direction_links": int(adjacent),
     }
     area = fill_small_holes(area, SLIVER_AREA)
-    return RoadMap(road.network, area, road.lane_centerlines, road.lane_widths), facts
+    road = RoadMap(
+        road.network, area, road.lane_centerlines, road.lane_widths, None, road.lane_priorities
+    )
+    return road, facts

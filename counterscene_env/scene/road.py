@@ -54,6 +54,10 @@ class RoadMap:
         lane_widths: ``[L]`` float64, m, one per centre line.
         extent: shapely (Multi)Polygon, m: the region the map describes (a real map is a crop
             of a city; beyond it nothing is known, road or not). None: the whole plane.
+        lane_priorities: ``[L]`` float64, the right of way of each centre line's lane
+            (highway-env's lane ``priority``: at a crossing the lower one gives way; its
+            intersection has 0-3). 0 where the map gives none (imported maps). None: read
+            from the network's lanes (:func:`priorities_from_network`).
     """
 
     network: RoadNetwork
@@ -61,6 +65,7 @@ class RoadMap:
     lane_centerlines: list[np.ndarray]
     lane_widths: np.ndarray
     extent: shapely.Geometry | None = None
+    lane_priorities: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.lane_centerlines = [np.asarray(c, dtype=np.float64) for c in self.lane_centerlines]
@@ -69,6 +74,7 @@ class RoadMap:
             raise ValueError(
                 f"{len(self.lane_centerlines)} centre lines but {len(self.lane_widths)} widths"
             )
+        self._set_priorities()
         for i, c in enumerate(self.lane_centerlines):
             if c.ndim != 2 or c.shape[1] != 2 or len(c) < 2:
                 raise ValueError(f"lane centre line {i} must be [P>=2, 2], got {c.shape}")
@@ -92,6 +98,18 @@ class RoadMap:
         if self.extent is not None:
             shapely.prepare(self.extent)
 
+    def _set_priorities(self) -> None:
+        if self.lane_priorities is None:
+            self.lane_priorities = priorities_from_network(self.network, self.lane_centerlines)
+        self.lane_priorities = np.asarray(self.lane_priorities, dtype=np.float64).reshape(-1)
+        if len(self.lane_priorities) != len(self.lane_widths):
+            raise ValueError(
+                f"{len(self.lane_centerlines)} centre lines but "
+                f"{len(self.lane_priorities)} lane priorities"
+            )
+        if not np.isfinite(self.lane_priorities).all():
+            raise ValueError("lane_priorities must be finite")
+
     def __getstate__(self) -> dict:
         # highway-env's spline lanes (PolyLane*) hold closures, which do not pickle: a map
         # crosses to another process (``stress --workers``) as its serialised network, rebuilt
@@ -100,6 +118,8 @@ class RoadMap:
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update({**state, "network": network_from_json(state["network"])})
+        if state.get("lane_priorities") is None:  # pickled before the field existed
+            self.lane_priorities = priorities_from_network(self.network, self.lane_centerlines)
         shapely.prepare(self.drivable_area)
         if self.extent is not None:
             shapely.prepare(self.extent)
@@ -136,7 +156,7 @@ class RoadMap:
                 to it (highway-env's straight highway lanes are kilometres long).
         """
         box = None if bounds is None else shapely.box(*bounds)
-        centerlines, widths, surfaces = [], [], []
+        centerlines, widths, priorities, surfaces = [], [], [], []
         for lane in network.lanes_list():
             s = _lane_samples(lane)
             width = float(lane.width_at(0.0))
@@ -151,12 +171,13 @@ class RoadMap:
             for piece in _clip_polyline(center, box):
                 centerlines.append(piece)
                 widths.append(width)
+                priorities.append(float(getattr(lane, "priority", 0)))
         area = shapely.union_all(surfaces) if surfaces else shapely.Polygon()
         # Closing (grow then shrink) paves junction gaps, keeps the outer road edge in place.
         area = area.buffer(JUNCTION_FILL).buffer(-JUNCTION_FILL)
         if box is not None:
             area = area.intersection(box)
-        return cls(network, area, centerlines, np.array(widths))
+        return cls(network, area, centerlines, np.array(widths), None, np.array(priorities))
 
     @classmethod
     def from_centerlines(
@@ -211,7 +232,9 @@ class RoadMap:
         if extra_area is not None:
             surfaces.append(extra_area)
         area = shapely.union_all(surfaces).buffer(0.01) if surfaces else shapely.Polygon()
-        return cls(network, area, kept_lines, np.array(kept_widths))
+        return cls(
+            network, area, kept_lines, np.array(kept_widths), None, np.zeros(len(kept_lines))
+        )
 
 
 # ---------------------------------------------------------------------- network serialisation
@@ -294,6 +317,33 @@ def fill_small_holes(area: shapely.Geometry, max_hole: float) -> shapely.Geometr
         holes = [r for r in poly.interiors if shapely.Polygon(r).area >= max_hole]
         parts.append(shapely.Polygon(poly.exterior, holes))
     return shapely.union_all(parts) if parts else shapely.Polygon()
+
+
+def priorities_from_network(network: RoadNetwork, centerlines: Sequence[np.ndarray]) -> np.ndarray:
+    """``[L]`` the priority of the network lane each centre line was drawn from.
+
+    For maps stored before ``RoadMap.lane_priorities`` existed. Each line goes to the lane
+    whose sampled centre passes nearest its points on average (lines are drawn from their
+    lane's samples, :meth:`RoadMap.from_network`, so the right lane is at about 0 m; lanes
+    that share a start, such as an intersection's turns, part within a few metres). A
+    network whose lanes are all of priority 0 (every imported map) gives zeros at once.
+    """
+    lanes = network.lanes_list()
+    priority = np.array([float(getattr(lane, "priority", 0)) for lane in lanes])
+    if not priority.any():
+        return np.zeros(len(centerlines))
+    samples = [
+        np.array([lane.position(s, 0.0) for s in np.linspace(0.0, lane.length, 50)])
+        for lane in lanes
+    ]
+    out = np.zeros(len(centerlines))
+    for i, line in enumerate(centerlines):
+        points = line[:: max(1, len(line) // 10)]
+        cost = [
+            np.linalg.norm(points[:, None] - s[None], axis=-1).min(axis=1).mean() for s in samples
+        ]
+        out[i] = priority[int(np.argmin(cost))]
+    return out
 
 
 def _lane_samples(lane: AbstractLane) -> np.ndarray:

@@ -140,7 +140,9 @@ def road_from_features(features: Mapping[Any, Any], source: str) -> tuple[RoadMa
         "road_edges": len(feats.edges),
         "surfaces": len(feats.surfaces),
     }
-    road = RoadMap(road.network, area, road.lane_centerlines, road.lane_widths, extent)
+    road = RoadMap(
+        road.network, area, road.lane_centerlines, road.lane_widths, extent, road.lane_priorities
+    )
     return road, summary
 
 

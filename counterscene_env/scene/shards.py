@@ -20,6 +20,9 @@ key                       content
 ``{i}/road_offsets``      ``[L + 1]`` int64, where each centre line starts in ``road_lines``
 ``{i}/road_widths``       ``[L]`` float64, m
 ``{i}/road_extent``       uint8 WKB of the map's extent (optional: absent means the whole plane)
+``{i}/road_priorities``   ``[L]`` float64 right of way of each centre line's lane (optional:
+                          absent, in shards written before it existed, it is read from the
+                          network's lanes)
 ========================  ============================================================
 
 Writes are atomic (temporary file, then rename), so an interrupted run never leaves a shard
@@ -80,6 +83,7 @@ def save_scenes(scenes: Sequence[Scene], path: str | os.PathLike) -> Path:
         arrays[f"{i}/road_lines"] = np.concatenate(lines) if lines else np.zeros((0, 2))
         arrays[f"{i}/road_offsets"] = np.cumsum([0] + [len(c) for c in lines]).astype(np.int64)
         arrays[f"{i}/road_widths"] = road.lane_widths
+        arrays[f"{i}/road_priorities"] = road.lane_priorities
         if road.extent is not None:
             arrays[f"{i}/road_extent"] = np.frombuffer(shapely.to_wkb(road.extent), np.uint8)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -156,6 +160,9 @@ def _read_scene(data, i: int, path: Path) -> Scene:
             shapely.from_wkb(data[f"{i}/road_extent"].tobytes())
             if f"{i}/road_extent" in data.files
             else None
+        ),
+        lane_priorities=(
+            data[f"{i}/road_priorities"] if f"{i}/road_priorities" in data.files else None
         ),
     )
     return Scene(

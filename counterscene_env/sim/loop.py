@@ -209,7 +209,7 @@ class ClosedLoop:
             egos=egos,
             vehicles=vehicles,
             segments=(segments := lane_segments(scene, c.lane_segment_length, c.lane_points)),
-            pieces=road_keeping.lane_pieces(*segments),
+            pieces=road_keeping.lane_pieces(segments.points, segments.widths),
             generator=torch.Generator().manual_seed(seed),
             rng=rng,
             selections=[Selection(self.config.selector, None, "not selected yet", 0)] * len(egos),

@@ -19,6 +19,7 @@ from highway_env.vehicle.kinematics import Vehicle
 
 from counterscene_env.adversary.selection import Conflict, Selection
 from counterscene_env.scene.core import Scene
+from counterscene_env.world_model.window import LaneSegments
 
 
 class MotionSource(enum.IntEnum):
@@ -103,7 +104,7 @@ class Episode:
     source: np.ndarray
     egos: list[int]
     vehicles: list[Vehicle]
-    segments: tuple[np.ndarray, np.ndarray]
+    segments: LaneSegments
     pieces: tuple[np.ndarray, ...]
     generator: torch.Generator
     rng: np.random.Generator

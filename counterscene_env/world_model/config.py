@@ -55,6 +55,13 @@ class ModelConfig:
             (the scene-frame map alone, as checkpoints without the key have it).
         local_radius: lane segments farther than this from the agent are masked out of its
             agent-centric map [m].
+        lane_priority: every lane point also reads its lane's right of way
+            (``RoadMap.lane_priorities``: highway-env's lane priority, by which the lower lane
+            gives way at a crossing; 0 where the map gives none, as on every imported map).
+            Without it (the default, and checkpoints without the key) the network cannot
+            tell from the map who has the right of way at highway-env's intersection, whose
+            four arms have the same shape. Measured in docs/world_model.md, "The network's
+            crossing collisions".
         d_model: token width.
         num_heads: attention heads (must divide ``d_model``).
         num_blocks: blocks of (temporal, social, map) attention + MLP.
@@ -117,6 +124,7 @@ class ModelConfig:
     lane_anchors: str = choice_field(LaneAnchors, LaneAnchors.EGO)
     local_lanes: int = 0
     local_radius: float = 30.0
+    lane_priority: bool = False
     d_model: int = 96
     num_heads: int = 4
     num_blocks: int = 3

@@ -94,6 +94,14 @@ class Denoiser(nn.Module):
             self.local_point_in = _mlp(MAP_FEATURES, d, d)
             self.local_lane_out = _mlp(d, d, d)
             self.local_no_map = nn.Parameter(torch.zeros(1, 1, 1, d))
+        if cfg.lane_priority:
+            # The right of way enters each point MLP's first layer as an extra input column
+            # of its own, zero at the start: the model starts as the one without it.
+            self.priority_in = nn.Linear(1, d, bias=False)
+            nn.init.zeros_(self.priority_in.weight)
+            if cfg.local_lanes:
+                self.local_priority_in = nn.Linear(1, d, bias=False)
+                nn.init.zeros_(self.local_priority_in.weight)
         if cfg.plan_features != "none":
             self.plan_in = _mlp(PLAN_FEATURES, d, d)
             self.pair_mlp = _mlp(PAIR_FEATURES, 32, cfg.num_heads)
@@ -107,6 +115,16 @@ class Denoiser(nn.Module):
         # which edges to suppress.
         nn.init.zeros_(self.edge_mlp[-1].weight)
         nn.init.constant_(self.edge_mlp[-1].bias, 3.0)
+
+    @staticmethod
+    def _points(
+        mlp: nn.Sequential, priority_in: nn.Linear | None, feat: torch.Tensor
+    ) -> torch.Tensor:
+        """A lane point MLP on ``feat [..., 5]`` (or ``[..., 6]``: the right of way last)."""
+        if priority_in is None:
+            return mlp(feat)
+        hidden = mlp[0](feat[..., :MAP_FEATURES]) + priority_in(feat[..., MAP_FEATURES:])
+        return mlp[2](mlp[1](hidden))
 
     def step_embedding(self, timesteps: torch.Tensor) -> torch.Tensor:
         """Sinusoidal embedding of the diffusion step ``[B]`` -> ``[B, d]``.
@@ -143,11 +161,11 @@ class Denoiser(nn.Module):
             agent: ``[B, K, 9]`` agent features.
             agent_valid: ``[B, K]`` bool (real agent with a valid current state).
             edges: ``[B, K, K, 6]`` CIG edge features.
-            lanes: ``[B, M, P, 5]`` lane point features.
+            lanes: ``[B, M, P, 5]`` lane point features (``[..., 6]`` with ``lane_priority``).
             lanes_valid: ``[B, M]`` bool.
             graph_dropout: probability of dropping each edge's bias (training only).
             generator: randomness of the graph dropout.
-            local_lanes: ``[B, K, Ml, P, 5]`` each agent's nearest lane segments in its own
+            local_lanes: ``[B, K, Ml, P, 5 or 6]`` each agent's nearest lane segments in its own
                 frame (required when ``local_lanes > 0``).
             local_valid: ``[B, K, Ml]`` bool.
         """
@@ -196,7 +214,9 @@ class Denoiser(nn.Module):
         bias = bias + torch.where(key_agent, 0.0, NEG)[..., None]
         social = bias.permute(0, 3, 1, 2)[:, None]  # [B, 1, heads, K, K]
 
-        points = self.point_in(lanes).amax(dim=-2)  # point-net: max-pool over the points
+        # point-net: each lane point through an MLP, max-pooled over the points
+        priority_in = self.priority_in if cfg.lane_priority else None
+        points = self._points(self.point_in, priority_in, lanes).amax(dim=-2)
         tokens = torch.cat([self.lane_out(points), self.no_map.expand(B, 1, -1)], dim=1)
         map_ok = torch.cat([lanes_valid, lanes_valid.new_ones(B, 1)], dim=1)
         map_bias = torch.where(map_ok, 0.0, NEG)[:, None, None, :]
@@ -204,7 +224,9 @@ class Denoiser(nn.Module):
             return Context(hist, agent_emb, temporal, social, tokens, map_bias)
         if local_lanes is None or local_valid is None:
             raise ValueError("this model needs local_lanes and local_valid")
-        local = self.local_lane_out(self.local_point_in(local_lanes).amax(dim=-2))
+        local_priority_in = self.local_priority_in if cfg.lane_priority else None
+        local = self._points(self.local_point_in, local_priority_in, local_lanes).amax(dim=-2)
+        local = self.local_lane_out(local)
         local = torch.cat([local, self.local_no_map.expand(B, K, 1, -1)], dim=2)
         local_ok = torch.cat([local_valid, local_valid.new_ones(B, K, 1)], dim=2)
         local_bias = torch.where(local_ok, 0.0, NEG)[:, :, None, None, :]

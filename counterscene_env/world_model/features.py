@@ -14,6 +14,7 @@ SPEED_SCALE = 10.0  # m/s
 LENGTH_SCALE = 5.0  # m
 WIDTH_SCALE = 2.0  # m
 LANE_WIDTH_SCALE = 4.0  # m
+PRIORITY_SCALE = 3.0  # the highest lane priority of highway-env's intersection
 
 
 def history_features(
@@ -77,26 +78,32 @@ def agent_features(
 
 
 def lane_features(
-    batch: dict[str, torch.Tensor],
+    batch: dict[str, torch.Tensor], priority: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Lane features from ``map [B, M, P, 2]`` m, ``map_valid`` and ``map_widths [B, M]`` m.
+    """Lane features from ``map [B, M, P, 2]`` m, ``map_valid`` and ``map_widths [B, M]`` m
+    (and ``map_priority [B, M]`` with ``priority``).
 
     Returns:
-        ``[B, M, P, 5]`` features (points, unit tangents, width), the ``[B, M]`` mask, and the
-        tangents ``[B, M, P, 2]`` and widths ``[B, M, P, 1]`` m (for :func:`local_map`).
+        ``[B, M, P, C]`` features (points, unit tangents, width; with ``priority`` a sixth,
+        the lane's right of way / 3), the ``[B, M]`` mask, and the tangents ``[B, M, P, 2]``
+        and the per-point extras ``[B, M, P, C - 4]`` (width, priority; for
+        :func:`local_map`).
     """
     lanes, lanes_ok = batch["map"], batch["map_valid"]
     direction = torch.diff(lanes, dim=-2, append=lanes[..., -1:, :] * 2 - lanes[..., -2:-1, :])
     direction = direction / direction.norm(dim=-1, keepdim=True).clamp(min=1e-6)
-    width = batch["map_widths"][..., None, None].expand(*lanes.shape[:-1], 1)
-    lfeat = torch.cat([lanes / POSITION_SCALE, direction, width / LANE_WIDTH_SCALE], -1)
-    return torch.where(lanes_ok[..., None, None], lfeat, 0.0), lanes_ok, direction, width
+    per_lane = [batch["map_widths"] / LANE_WIDTH_SCALE]
+    if priority:
+        per_lane.append(batch["map_priority"].to(lanes.dtype) / PRIORITY_SCALE)
+    extras = torch.stack(per_lane, -1)[..., None, :].expand(*lanes.shape[:-1], len(per_lane))
+    lfeat = torch.cat([lanes / POSITION_SCALE, direction, extras], -1)
+    return torch.where(lanes_ok[..., None, None], lfeat, 0.0), lanes_ok, direction, extras
 
 
 def local_map(
     lanes: torch.Tensor,
     direction: torch.Tensor,
-    width: torch.Tensor,
+    extras: torch.Tensor,
     lanes_ok: torch.Tensor,
     position: torch.Tensor,
     course: torch.Tensor,
@@ -110,14 +117,15 @@ def local_map(
     Args:
         lanes: ``[B, M, P, 2]`` lane points [m] (ego frame).
         direction: ``[B, M, P, 2]`` unit tangents.
-        width: ``[B, M, P, 1]`` lane widths [m].
+        extras: ``[B, M, P, C]`` per-point features that do not depend on the frame
+            (``lane_features``: the width / 4 m, and the right of way where the model reads it).
         lanes_ok: ``[B, M]`` bool.
         position: ``[B, K, 2]`` agents at "now" [m]; ``course``: ``[B, K]`` rad.
         valid: ``[B, K]`` bool.
         local_lanes, local_radius: lanes per agent, and how near [m] a lane must be.
 
     Returns:
-        ``[B, K, Ml, P, 5]`` features (x, y [/20 m], tangent, width [/4 m]) and the
+        ``[B, K, Ml, P, 4 + C]`` features (x, y [/20 m], tangent, the extras) and the
         ``[B, K, Ml]`` mask: a real lane within ``local_radius`` of a valid agent.
     """
     B, K = position.shape[:2]
@@ -137,9 +145,7 @@ def local_map(
         return torch.stack([cos * x + sin * y, -sin * x + cos * y], -1)
 
     rel = rotate(pick(lanes) - position[:, :, None, None, :])
-    feat = torch.cat(
-        [rel / POSITION_SCALE, rotate(pick(direction)), pick(width) / LANE_WIDTH_SCALE], -1
-    )
+    feat = torch.cat([rel / POSITION_SCALE, rotate(pick(direction)), pick(extras)], -1)
     ok = (near <= local_radius) & valid[..., None]
     return torch.where(ok[..., None, None], feat, 0.0), ok
 

@@ -225,12 +225,12 @@ class WorldModel(nn.Module):
         afeat = features.agent_features(now, course, batch["extents"], valid)
         velocity = now[..., 3:4] * torch.stack([torch.cos(course), torch.sin(course)], -1)
         edges = edge_features(now[..., :2], velocity, valid, horizon=c.horizon)
-        lfeat, lanes_ok, direction, width = features.lane_features(batch)
+        lfeat, lanes_ok, direction, extras = features.lane_features(batch, c.lane_priority)
         local, local_ok = (
             features.local_map(
                 batch["map"],
                 direction,
-                width,
+                extras,
                 lanes_ok,
                 now[..., :2],
                 course,

@@ -200,6 +200,10 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         adds_plan = start.config.plan_features == "none" != model_cfg.plan_features
         if adds_plan:
             same = same.replace(plan_features=model_cfg.plan_features)
+        # And one without the lanes' right of way (its input columns start at zero).
+        adds_priority = model_cfg.lane_priority and not start.config.lane_priority
+        if adds_priority:
+            same = same.replace(lane_priority=True)
         if same != model_cfg:
             raise ValueError(
                 f"--init model {cfg.init!r} has another architecture than preset "
@@ -208,9 +212,15 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         normalization = normalization or start.normalization
         model = WorldModel(model_cfg, normalization).to(device)
         missing, unexpected = model.load_state_dict(
-            start.state_dict(), strict=not (adds_local or adds_plan)
+            start.state_dict(), strict=not (adds_local or adds_plan or adds_priority)
         )
-        new_modules = (".local", "denoiser.plan_in.", "denoiser.pair_mlp.")
+        new_modules = (
+            ".local",
+            "denoiser.plan_in.",
+            "denoiser.pair_mlp.",
+            "denoiser.priority_in.",
+            "denoiser.local_priority_in.",
+        )
         if unexpected or any(not any(m in k for m in new_modules) for k in missing):
             raise ValueError(f"--init model {cfg.init!r}: tensors do not match the new model")
     else:

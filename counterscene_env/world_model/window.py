@@ -23,6 +23,8 @@ key                 shape, dtype        meaning
 ``map``             [M, P, 2] float32   lane centre segments, x y [m], driving direction
 ``map_valid``       [M] bool
 ``map_widths``      [M] float32         lane width [m]
+``map_priority``    [M] float32         the lane's right of way (``RoadMap.lane_priorities``:
+                                        at a crossing the lower gives way; 0: none given)
 ``origin``          [3] float64         world x [m], y [m], yaw [rad] of the frame
 ``scene_index``     [] int64            row of the scene in this dataset
 ``t0``              [] int64            the "now" step in that scene
@@ -39,6 +41,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -56,6 +59,7 @@ MODEL_KEYS = (
     "map",
     "map_valid",
     "map_widths",
+    "map_priority",
 )
 
 
@@ -101,7 +105,7 @@ def make_window(
     scene: Scene,
     t0: int,
     config: WindowConfig,
-    segments: tuple[np.ndarray, np.ndarray] | None = None,
+    segments: LaneSegments | None = None,
     include: Sequence[int] = (),
 ) -> dict[str, np.ndarray]:
     """One window (module docstring) of ``scene`` at step ``t0``.
@@ -160,7 +164,7 @@ def make_window(
     window_rows = np.full(K, -1, np.int64)
     window_rows[: len(rows)] = rows
 
-    seg, widths = (
+    seg, widths, priorities = (
         segments
         if segments is not None
         else lane_segments(scene, c.lane_segment_length, c.lane_points)
@@ -168,6 +172,7 @@ def make_window(
     lanes = np.zeros((c.num_lanes, c.lane_points, 2), np.float32)
     lane_valid = np.zeros(c.num_lanes, bool)
     lane_widths = np.zeros(c.num_lanes, np.float32)
+    lane_priority = np.zeros(c.num_lanes, np.float32)
     if len(seg):
         anchors = origin[None, :2] if c.lane_anchors == "ego" else _anchors(scene, rows, t0, F)
         # distance of each segment to its nearest anchor [S]
@@ -177,6 +182,7 @@ def make_window(
         lanes[: len(near)] = to_ego(seg[near])
         lane_valid[: len(near)] = True
         lane_widths[: len(near)] = widths[near]
+        lane_priority[: len(near)] = priorities[near]
     return {
         "history": history,
         "history_valid": history_valid,
@@ -187,6 +193,7 @@ def make_window(
         "map": lanes,
         "map_valid": lane_valid,
         "map_widths": lane_widths,
+        "map_priority": lane_priority,
         "origin": origin,
         "rows": window_rows,
         "scene_index": np.int64(0),
@@ -204,14 +211,25 @@ def _anchors(scene: Scene, rows: np.ndarray, t0: int, future_steps: int) -> np.n
     return np.concatenate([pos, pos + 0.5 * reach * heading, pos + reach * heading])
 
 
-def lane_segments(scene: Scene, length: float, points: int) -> tuple[np.ndarray, np.ndarray]:
+class LaneSegments(NamedTuple):
+    """A road's centre lines cut into pieces (:func:`lane_segments`), world frame."""
+
+    points: np.ndarray  # [S, P, 2] m
+    widths: np.ndarray  # [S] m
+    priorities: np.ndarray  # [S], the lane's right of way (RoadMap.lane_priorities)
+
+
+def lane_segments(scene: Scene, length: float, points: int) -> LaneSegments:
     """Cut every centre line into pieces of ``length`` m resampled to ``points`` points.
 
-    Returns ``[S, points, 2]`` m (world frame) and ``[S]`` widths m. A last piece shorter than
-    ``length`` keeps its own length (points closer together), so no lane end is lost.
+    A last piece shorter than ``length`` keeps its own length (points closer together), so no
+    lane end is lost. Each piece keeps its lane's width and right of way.
     """
-    segs, widths = [], []
-    for line, width in zip(scene.road.lane_centerlines, scene.road.lane_widths, strict=True):
+    road = scene.road
+    segs, widths, priorities = [], [], []
+    for line, width, priority in zip(
+        road.lane_centerlines, road.lane_widths, road.lane_priorities, strict=True
+    ):
         arc = arc_length(line)
         total = arc[-1]
         if total <= 1e-6:
@@ -223,9 +241,10 @@ def lane_segments(scene: Scene, length: float, points: int) -> tuple[np.ndarray,
                 np.stack([np.interp(s, arc, line[:, 0]), np.interp(s, arc, line[:, 1])], -1)
             )
             widths.append(width)
+            priorities.append(priority)
     if not segs:
-        return np.zeros((0, points, 2)), np.zeros(0)
-    return np.stack(segs), np.asarray(widths)
+        return LaneSegments(np.zeros((0, points, 2)), np.zeros(0), np.zeros(0))
+    return LaneSegments(np.stack(segs), np.asarray(widths), np.asarray(priorities))
 
 
 #: Keys with an agent axis (axis 0 of a window).
