@@ -9,8 +9,10 @@ episodes in which a vehicle other than the ego is wrong-way for at least 1 s wit
 and the share of moving vehicle-steps that are; the logs' own figures are given beside them
 (0 on generated roads). It also sorts the collisions between two vehicles other than the ego
 that the log does not have by how the two were heading at their first overlapping step:
-head-on (courses over 150 degrees apart), the same way (under 30) or crossing, and gives per
-episode whether it had one (``per_episode``, to pair two runs on the same scenes):
+head-on (courses over 150 degrees apart), the same way (under 30) or crossing, counts the
+pairs in which a car is more than 2 m from every position of its own log at that step (it
+took another path than the log, so the two met where the log never had them), and gives
+per episode whether it had one (``per_episode``, to pair two runs on the same scenes):
 
     python tools/wrong_way.py data/eval-intersection [--episodes 50] [--set KEY=VALUE ...]
 
@@ -87,16 +89,27 @@ def wrong_way_steps(scene: Scene, rows: list[int], steps: slice) -> np.ndarray:
     return out
 
 
-def new_collision_kinds(sim: Scene, factual: Scene) -> list[str]:
+OFF_PATH = 2.0  # m: a car this far from every logged position of its own took another path
+
+
+def new_collision_kinds(sim: Scene, factual: Scene) -> list[tuple[str, bool]]:
     """Pairs of non-ego vehicles that overlap in ``sim``'s rollout but never in the log,
-    each named by the angle between their courses at the first overlapping step."""
-    yaw = sim.yaws[:, rollout_slice(sim)]
+    each named by the angle between their courses at the first overlapping step, and whether
+    one of the two is then more than ``OFF_PATH`` from every position of its own log."""
+    sl = rollout_slice(sim)
+    yaw, pos = sim.yaws[:, sl], sim.positions[:, sl]
+
+    def off_path(r: int, t: int) -> bool:
+        logged = factual.positions[r][factual.valid[r]]
+        return not len(logged) or np.linalg.norm(logged - pos[r, t], axis=-1).min() > OFF_PATH
+
     kinds = []
     for a, b, t in new_vehicle_collisions(sim, factual):
         angle = abs(float(wrap_angle(yaw[a, t] - yaw[b, t])))
-        kinds.append(
+        kind = (
             "head-on" if angle > 5 * np.pi / 6 else "same way" if angle < np.pi / 6 else "crossing"
         )
+        kinds.append((kind, bool(off_path(a, t) or off_path(b, t))))
     return kinds
 
 
@@ -152,7 +165,13 @@ def main() -> None:
     collisions = {
         "episodes_with_new_non_ego_collision": hit,
         "ci95": list(wilson_interval(hit, len(scenes))),
-        "pairs": {k: kinds.count(k) for k in ("crossing", "same way", "head-on")},
+        "pairs": {
+            k: sum(kind == k for kind, _ in kinds) for k in ("crossing", "same way", "head-on")
+        },
+        "pairs_with_a_car_off_its_logged_path": {
+            k: sum(kind == k and off for kind, off in kinds)
+            for k in ("crossing", "same way", "head-on")
+        },
         # Per episode, in the order of the stored scenes: two runs on the same scenes pair up
         # (counterscene_env.report.stats.paired_rate).
         "per_episode": flags,
