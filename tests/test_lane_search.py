@@ -11,7 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from counterscene_env.scene.lane_search import IndexedRoadNetwork, PolylineSpline
-from counterscene_env.scene.road import RoadMap, network_from_json, network_to_json
+from counterscene_env.scene.road import RoadMap
+from counterscene_env.scene.road_json import network_from_json, network_to_json
 
 
 def _lines() -> list[np.ndarray]:

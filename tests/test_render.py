@@ -180,7 +180,8 @@ def test_real_map_lanes_render():
     draws them, also when read back from a road written before they had any."""
     from highway_env.road.lane import LineType
 
-    from counterscene_env.scene.road import RoadMap, network_from_json, network_to_json
+    from counterscene_env.scene.road import RoadMap
+    from counterscene_env.scene.road_json import network_from_json, network_to_json
 
     curve = np.stack([np.linspace(0, 120, 40), 10 * np.sin(np.linspace(0, 2, 40))], -1)
     road = RoadMap.from_centerlines([curve, curve + np.array([0.0, 3.5])], [3.5, 3.5])

@@ -10,7 +10,8 @@ import shapely
 from conftest import make_scene, straight_road
 
 from counterscene_env.scene import SceneError
-from counterscene_env.scene.road import RoadMap, network_from_json, network_to_json
+from counterscene_env.scene.road import RoadMap
+from counterscene_env.scene.road_json import network_from_json, network_to_json
 
 
 def _line_scene(n=4, t=50):

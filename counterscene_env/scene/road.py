@@ -9,7 +9,6 @@ drivable area (a shapely geometry, the union of the lane surfaces).
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -17,17 +16,14 @@ import numpy as np
 import shapely
 from highway_env.road.lane import (
     AbstractLane,
-    CircularLane,
-    LineType,
-    PolyLane,
-    PolyLaneFixedWidth,
     SineLane,
     StraightLane,
 )
 from highway_env.road.road import RoadNetwork
 
 from counterscene_env.geometry import arc_length, points_in_area
-from counterscene_env.scene.lane_search import IndexedRoadNetwork, fast_poly_lane
+from counterscene_env.scene.lane_search import IndexedRoadNetwork
+from counterscene_env.scene.road_json import network_from_json, network_to_json, poly_lane
 
 #: Spacing of the sampled centre lines and lane-surface outlines, m.
 SAMPLE_SPACING = 1.0
@@ -226,7 +222,7 @@ class RoadMap:
                 surfaces.append(shapely.LineString(line).buffer(width / 2, cap_style="flat"))
             if not usable[i]:
                 continue
-            network.add_lane(start[i], end[i], _poly_lane(line, float(width)))
+            network.add_lane(start[i], end[i], poly_lane(line, float(width)))
             kept_lines.append(line)
             kept_widths.append(float(width))
         if extra_area is not None:
@@ -235,75 +231,6 @@ class RoadMap:
         return cls(
             network, area, kept_lines, np.array(kept_widths), None, np.zeros(len(kept_lines))
         )
-
-
-# ---------------------------------------------------------------------- network serialisation
-# Lane classes a serialised network may name. A name outside this table is refused: unlike
-# highway-env's own ``lane_from_config`` we never import a class path read from a file.
-_LANE_CLASSES: dict[str, type[AbstractLane]] = {
-    cls.__name__: cls
-    for cls in (StraightLane, SineLane, CircularLane, PolyLaneFixedWidth, PolyLane)
-}
-
-
-def network_to_json(network: RoadNetwork) -> str:
-    """Serialise a network to JSON (lane class names and their constructor arguments)."""
-    lanes = []
-    for _from, to_dict in network.graph.items():
-        for _to, lane_list in to_dict.items():
-            for lane in lane_list:
-                cfg = lane.to_config()["config"]
-                if isinstance(lane, PolyLaneFixedWidth) and hasattr(lane, "source_points"):
-                    # highway-env's to_config writes the spline's 1 m resampling, which loses
-                    # the lane's end and cannot rebuild a lane shorter than 2 m: keep the source.
-                    cfg["lane_points"] = lane.source_points.tolist()
-                if isinstance(lane, PolyLane):
-                    cfg = {
-                        "lane_points": cfg["lane_points"],
-                        "left_boundary_points": [
-                            p.position.tolist() for p in lane.left_boundary.poses
-                        ],
-                        "right_boundary_points": [
-                            p.position.tolist() for p in lane.right_boundary.poses
-                        ],
-                        **{
-                            k: cfg[k]
-                            for k in ("line_types", "forbidden", "speed_limit", "priority")
-                        },
-                    }
-                lanes.append(
-                    {"from": _from, "to": _to, "class": type(lane).__name__, "config": cfg}
-                )
-    return json.dumps(lanes, default=_json_default)
-
-
-def network_from_json(text: str) -> RoadNetwork:
-    """Rebuild a network written by :func:`network_to_json`; unknown lane classes are refused."""
-    network = IndexedRoadNetwork()
-    for entry in json.loads(text):
-        name = entry.get("class")
-        if name not in _LANE_CLASSES:
-            raise ValueError(f"unknown lane class {name!r}; allowed: {sorted(_LANE_CLASSES)}")
-        cfg = dict(entry["config"])
-        for key in ("start", "end", "center"):
-            if key in cfg:
-                cfg[key] = np.asarray(cfg[key], dtype=np.float64)
-        if cfg.get("line_types") is not None:
-            cfg["line_types"] = tuple(cfg["line_types"])
-        if name == "PolyLaneFixedWidth":
-            lane = _poly_lane(np.asarray(cfg.pop("lane_points"), dtype=np.float64), **cfg)
-        else:
-            lane = _LANE_CLASSES[name](**cfg)
-        network.add_lane(entry["from"], entry["to"], lane)
-    return network
-
-
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"cannot serialise {type(obj).__name__}")
 
 
 # ---------------------------------------------------------------------- helpers
@@ -368,19 +295,6 @@ def _clip_polyline(points: np.ndarray, box: shapely.Geometry | None) -> list[np.
         pts = shapely.line_interpolate_point(piece, np.linspace(0.0, piece.length, n))
         out.append(shapely.get_coordinates(pts))
     return out
-
-
-def _poly_lane(points: np.ndarray, width: float, **kwargs) -> PolyLaneFixedWidth:
-    """A ``PolyLaneFixedWidth`` that remembers its source points ``[P, 2]`` m for serialising.
-
-    Without ``line_types`` its edges are striped (highway-env's default for its other lanes;
-    its renderer cannot draw a lane whose ``line_types`` is None).
-    """
-    if kwargs.get("line_types") is None:
-        kwargs["line_types"] = (LineType.STRIPED, LineType.STRIPED)
-    lane = fast_poly_lane(PolyLaneFixedWidth(points.tolist(), width=width, **kwargs))
-    lane.source_points = np.asarray(points, dtype=np.float64)
-    return lane
 
 
 def _dedupe(points: np.ndarray) -> np.ndarray:

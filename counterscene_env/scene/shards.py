@@ -14,7 +14,7 @@ key                       content
 ``{i}/agent_types``       ``[N]`` str
 ``{i}/agent_ids``         ``[N]`` str
 ``{i}/meta``              JSON: ego_index, dt, scenario_id, current_index, metadata
-``{i}/road_network``      JSON: the highway-env lanes (class name + arguments, see road.py)
+``{i}/road_network``      JSON: the highway-env lanes (class name + arguments, see road_json.py)
 ``{i}/road_area``         uint8 WKB of the drivable area
 ``{i}/road_lines``        ``[sum P, 2]`` float64 lane centre points, m
 ``{i}/road_offsets``      ``[L + 1]`` int64, where each centre line starts in ``road_lines``
@@ -44,7 +44,8 @@ import numpy as np
 import shapely
 
 from counterscene_env.scene.core import Scene, SceneError
-from counterscene_env.scene.road import RoadMap, network_from_json, network_to_json
+from counterscene_env.scene.road import RoadMap
+from counterscene_env.scene.road_json import network_from_json, network_to_json
 
 SHARD_FORMAT = "counterscene-shard"
 SHARD_VERSION = 1
