@@ -16,10 +16,10 @@ def _crossing(minor_start: float, major_start: float, seconds: float = 12.0):
     3), both going straight at 9 m/s towards the centre, simulated at 20 Hz on highway-env's
     intersection with the gap-acceptance road. Returns both cars' positions ``[T, 2, 2]`` m
     and speeds ``[T, 2]`` m/s."""
-    from counterscene_env.scene.highway import _make_env
+    from counterscene_env.scene.highway import make_env
 
     with pristine_idm_constants():
-        env = _make_env("intersection", "gap-acceptance")
+        env = make_env("intersection", "gap-acceptance")
         env.reset(seed=0)
         road = env.road
         road.vehicles.clear()

@@ -64,9 +64,9 @@ def test_a_doomed_recording_stops_at_its_first_overlap_and_keeps_the_same_scenes
     import counterscene_env.scene.highway as highway
 
     frames = []
-    step = highway._Traffic.step
+    step = highway.Traffic.step
     monkeypatch.setattr(
-        highway._Traffic, "step", lambda self, dt: frames.append(dt) or step(self, dt)
+        highway.Traffic, "step", lambda self, dt: frames.append(dt) or step(self, dt)
     )
     with pytest.raises(RejectedScene, match="overlap at step"):
         record("intersection", 0)
@@ -142,10 +142,10 @@ def test_closest_lane_search_agrees_with_highway_env(scenario):
     """Random poses near each network, ties included (a pose at a lane's start, where the
     lanes leaving one node begin together): the pruned search returns highway-env's lane
     from any lane the vehicle was on before."""
-    from counterscene_env.scene.highway import _make_env
+    from counterscene_env.scene.highway import make_env
     from counterscene_env.scene.highway_vehicle import closest_lane_index
 
-    env = _make_env(scenario)
+    env = make_env(scenario)
     env.reset(seed=0)
     network = env.road.network
     lanes = network.lanes_list()

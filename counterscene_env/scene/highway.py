@@ -179,9 +179,9 @@ def check_yielding(scenario: str, yielding: str) -> None:
 def _simulate(scenario: str, seed: int, cfg: GeneratorConfig) -> tuple[_Recorder, Any, Any, int]:
     """Warm up and run the env, logging every 10 Hz step: (log, ego vehicle, road network, T)."""
     with pristine_idm_constants():
-        env = _make_env(scenario, cfg.yielding)
+        env = make_env(scenario, cfg.yielding)
         env.reset(seed=int(seed))  # a new road and traffic from this seed alone
-        traffic = _Traffic(scenario, env, _VEHICLE_CLASSES[cfg.yielding])
+        traffic = Traffic(scenario, env, _VEHICLE_CLASSES[cfg.yielding])
         ego = traffic.setup()
         frames_per_step = cfg.sim_frequency // 10
         warmup = WARMUP[scenario] if cfg.warmup is None else cfg.warmup
@@ -283,7 +283,10 @@ class _GapAcceptanceIntersectionEnv(IntersectionEnv):
 _ENVS: dict[tuple[str, str], Any] = {}
 
 
-def _make_env(scenario: str, yielding: str = Yielding.HIGHWAY_ENV.value):
+def make_env(scenario: str, yielding: str = Yielding.HIGHWAY_ENV.value):
+    """The process's highway-env environment of ``scenario`` (one per scenario and yielding
+    rule, made once; its class constants are only pristine inside
+    ``idm_constants.pristine_idm_constants``)."""
     key = (scenario, yielding)
     if key not in _ENVS:
         vehicle = _VEHICLE_CLASSES[yielding]
@@ -298,7 +301,7 @@ def _make_env(scenario: str, yielding: str = Yielding.HIGHWAY_ENV.value):
     return _ENVS[key]
 
 
-class _Traffic:
+class Traffic:
     """Per-scenario set-up and per-frame housekeeping around ``road.act(); road.step(dt)``."""
 
     def __init__(self, scenario: str, env, vehicle_class: type = ForwardIDMVehicle) -> None:
