@@ -70,7 +70,6 @@ class RoadMap:
             raise ValueError(
                 f"{len(self.lane_centerlines)} centre lines but {len(self.lane_widths)} widths"
             )
-        self._set_priorities()
         for i, c in enumerate(self.lane_centerlines):
             if c.ndim != 2 or c.shape[1] != 2 or len(c) < 2:
                 raise ValueError(f"lane centre line {i} must be [P>=2, 2], got {c.shape}")
@@ -80,6 +79,7 @@ class RoadMap:
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise ValueError(f"lane width {i} must be finite and > 0 m, got {self.lane_widths[i]}")
+        self._set_priorities()
         if not isinstance(self.drivable_area, shapely.Polygon | shapely.MultiPolygon):
             raise ValueError(
                 "drivable_area must be a shapely Polygon or MultiPolygon, got "
@@ -95,6 +95,7 @@ class RoadMap:
             shapely.prepare(self.extent)
 
     def _set_priorities(self) -> None:
+        """Check ``lane_priorities``, or read them from the network where None."""
         if self.lane_priorities is None:
             self.lane_priorities = priorities_from_network(self.network, self.lane_centerlines)
         self.lane_priorities = np.asarray(self.lane_priorities, dtype=np.float64).reshape(-1)
@@ -113,9 +114,11 @@ class RoadMap:
         return {**self.__dict__, "network": network_to_json(self.network)}
 
     def __setstate__(self, state: dict) -> None:
-        self.__dict__.update({**state, "network": network_from_json(state["network"])})
-        if state.get("lane_priorities") is None:  # pickled before the field existed
-            self.lane_priorities = priorities_from_network(self.network, self.lane_centerlines)
+        # A map pickled before ``lane_priorities`` existed reads them from its network.
+        self.__dict__.update(
+            {"lane_priorities": None, **state, "network": network_from_json(state["network"])}
+        )
+        self._set_priorities()
         shapely.prepare(self.drivable_area)
         if self.extent is not None:
             shapely.prepare(self.extent)
