@@ -16,7 +16,7 @@ def _crossing(minor_start: float, major_start: float, seconds: float = 12.0):
     3), both going straight at 9 m/s towards the centre, simulated at 20 Hz on highway-env's
     intersection with the gap-acceptance road. Returns both cars' positions ``[T, 2, 2]`` m
     and speeds ``[T, 2]`` m/s."""
-    from counterscene_env.scene.highway import make_env
+    from counterscene_env.scene.highway_traffic import make_env
 
     with pristine_idm_constants():
         env = make_env("intersection", "gap-acceptance")

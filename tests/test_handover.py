@@ -5,7 +5,7 @@ import pytest
 
 from counterscene_env.geometry import overlaps_over_time
 from counterscene_env.scene.handover import drive_on
-from counterscene_env.scene.highway import make_env
+from counterscene_env.scene.highway_traffic import make_env
 from counterscene_env.scene.idm_constants import pristine_idm_constants
 
 

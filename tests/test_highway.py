@@ -62,11 +62,12 @@ def test_a_doomed_recording_stops_at_its_first_overlap_and_keeps_the_same_scenes
     """Seed 0 of the intersection crashes about 8 s in: the recording stops there instead of
     simulating the whole 13 s, and the scenes kept (with the check or without it) are equal."""
     import counterscene_env.scene.highway as highway
+    import counterscene_env.scene.highway_traffic as highway_traffic
 
     frames = []
-    step = highway.Traffic.step
+    step = highway_traffic.Traffic.step
     monkeypatch.setattr(
-        highway.Traffic, "step", lambda self, dt: frames.append(dt) or step(self, dt)
+        highway_traffic.Traffic, "step", lambda self, dt: frames.append(dt) or step(self, dt)
     )
     with pytest.raises(RejectedScene, match="overlap at step"):
         record("intersection", 0)
@@ -142,7 +143,7 @@ def test_closest_lane_search_agrees_with_highway_env(scenario):
     """Random poses near each network, ties included (a pose at a lane's start, where the
     lanes leaving one node begin together): the pruned search returns highway-env's lane
     from any lane the vehicle was on before."""
-    from counterscene_env.scene.highway import make_env
+    from counterscene_env.scene.highway_traffic import make_env
     from counterscene_env.scene.highway_vehicle import closest_lane_index
 
     env = make_env(scenario)

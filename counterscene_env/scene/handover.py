@@ -16,7 +16,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from counterscene_env.scene.core import DEFAULT_DT
-from counterscene_env.scene.highway import Traffic, make_env
+from counterscene_env.scene.highway_traffic import Traffic, make_env
 from counterscene_env.scene.highway_vehicle import ForwardIDMVehicle
 from counterscene_env.scene.idm_constants import pristine_idm_constants
 
