@@ -412,6 +412,14 @@ def test_init_adds_the_plan_features_but_never_drops_them(trained, dataset, tmp_
     assert (
         not new["denoiser.plan_in.2.weight"].any() and not new["denoiser.pair_mlp.2.weight"].any()
     )
+    # The other kind of plan reads the same tensors: a fine-tune may switch, every tensor kept.
+    other = tmp_path / "noisy"
+    argv = ["--init", str(fine), "--lr", "0", "--set", "plan_features=noisy"]
+    assert _train(dataset, other, 2, *argv) == 0
+    switched = load_model(other)
+    assert switched.config.plan_features == "noisy"
+    for name, tensor in new.items():
+        assert torch.equal(tensor, switched.state_dict()[name]), name
     capsys.readouterr()
     assert _train(dataset, tmp_path / "back", 2, "--init", str(fine)) == 1
     assert "another architecture" in capsys.readouterr().err
