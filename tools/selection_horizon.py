@@ -5,9 +5,11 @@ on the selectors asks for CR ego-adversary at 8-10 s. This reads a road's rows f
 ``paper-tables`` output folder and prints, for each selector, CR ego-adversary and ADE over
 the band (``paper_tables.per_episode``: the same per-episode values as the tables), the
 whole-episode ego-adversary rate, the causal row's paired difference to each baseline and its
-ratio to the best one:
+ratio to the best one. ``--split`` tells where each gap comes from: the episodes split by
+whether the two selectors chose the same adversary, and if not by the two conflict types
+(causal's first), each group's figures for both rows and its share of the gap:
 
-    python tools/selection_horizon.py OUT/intersection [--seconds 8 9 10]
+    python tools/selection_horizon.py OUT/intersection [--seconds 8 9 10] [--split]
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("road", type=Path, help="a road's folder of a paper-tables run")
     ap.add_argument("--seconds", type=int, nargs="+", default=[8, 9, 10])
+    ap.add_argument("--split", action="store_true", help="where each gap comes from")
     args = ap.parse_args()
     rows = [r for r in ROWS if (args.road / r / "episodes.jsonl").exists()]
     if "counterscene" not in rows or len(rows) < 2:
@@ -63,6 +66,35 @@ def main() -> None:
     best = max(rows[1:], key=lambda r: np.nanmean(values[r][0]))
     ratio = np.nanmean(ref_cr) / np.nanmean(values[best][0])
     print(f"  causal / best baseline ({best}): {ratio:.2f}x")
+    if args.split:
+        for r in rows[1:]:
+            split(records["counterscene"][:n], records[r][:n], values["counterscene"], values[r], r)
+
+
+def split(causal: list, other: list, ref: tuple, val: tuple, name: str) -> None:
+    """Print the causal row against ``name`` per group of episodes: the same adversary, or
+    the two rows' conflict types; each group's CR and ADE over the band for both rows and
+    its share of the whole gap (the shares add up to the gap)."""
+    groups: dict[str, list[int]] = {}
+    for i, (a, b) in enumerate(zip(causal, other, strict=True)):
+        if a.get("adversary_id") == b.get("adversary_id"):
+            key = "same adversary"
+        else:
+            key = f"{a.get('adversary_type') or 'none'} / {b.get('adversary_type') or 'none'}"
+        groups.setdefault(key, []).append(i)
+    n = len(causal)
+    print(f"  causal against {name}, by group (causal's conflict type / {name}'s):")
+    for key, idx in sorted(groups.items(), key=lambda kv: -len(kv[1])):
+        cr_a, cr_b = np.nanmean(ref[0][idx]), np.nanmean(val[0][idx])
+        ade_a, ade_b = np.nanmean(ref[1][idx]), np.nanmean(val[1][idx])
+        # A group's share of a gap: its summed difference over all episodes of the row.
+        share_cr = 100 * np.nansum(ref[0][idx] - val[0][idx]) / n
+        share_ade = np.nansum(ref[1][idx] - val[1][idx]) / np.isfinite(ref[1] - val[1]).sum()
+        print(
+            f"    {key:30s} {len(idx):4d} episodes  CR {100 * cr_a:5.1f} / {100 * cr_b:5.1f} %"
+            f" ({share_cr:+5.1f} points of the gap)  ADE {ade_a:.2f} / {ade_b:.2f} m"
+            f" ({share_ade:+.2f} m of the gap)"
+        )
 
 
 if __name__ == "__main__":
