@@ -53,6 +53,11 @@ GENERATOR_VERSION = 2
 #: Shortest log, s: 3 s of history and 10 s of future.
 MIN_DURATION = 13.0
 
+#: Default warm-up per scenario, s. highway-env starts highway and merge traffic at 25-30 m/s on
+#: 20 m/s lanes: everyone brakes hard for the first 1-2 s, an artefact we do not record. The
+#: intersection env warms up for 3 s itself; the roundabout's first seconds are real yielding.
+WARMUP = {"highway": 3.0, "merge": 3.0, "intersection": 1.0, "roundabout": 1.0}
+
 
 @dataclass(frozen=True)
 class GeneratorConfig:
@@ -222,13 +227,6 @@ def _reject_unsafe(scene: Scene, cfg: GeneratorConfig) -> None:
     off = shapely.distance(scene.road.drivable_area, centres).max()
     if off > cfg.max_off_road:
         raise RejectedScene(f"a vehicle drove {off:.1f} m off the road")
-
-
-# ---------------------------------------------------------------------- recording settings
-#: Default warm-up per scenario, s. highway-env starts highway and merge traffic at 25-30 m/s on
-#: 20 m/s lanes: everyone brakes hard for the first 1-2 s, an artefact we do not record. The
-#: intersection env warms up for 3 s itself; the roundabout's first seconds are real yielding.
-WARMUP = {"highway": 3.0, "merge": 3.0, "intersection": 1.0, "roundabout": 1.0}
 
 
 # ---------------------------------------------------------------------- recording
