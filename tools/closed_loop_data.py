@@ -32,9 +32,8 @@ from counterscene_env.stress import run_batch
 from counterscene_env.world_model.checkpoint import load_model
 
 BRANCHES = (10, 25, 40)  # steps after "now" at which the rollout is handed to highway-env
-MIN_TARGET_SPEED = (
-    5.0  # m/s: the IDM's desired speed is the fastest of the car's log, at least this
-)
+#: m/s: the IDM's desired speed is the fastest of the car's log, at least this.
+MIN_TARGET_SPEED = 5.0
 
 
 def destination(scene: Scene, row: int) -> str | None:

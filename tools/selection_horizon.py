@@ -82,14 +82,16 @@ def split(causal: list, other: list, ref: tuple, val: tuple, name: str) -> None:
         else:
             key = f"{a.get('adversary_type') or 'none'} / {b.get('adversary_type') or 'none'}"
         groups.setdefault(key, []).append(i)
-    n = len(causal)
+    # A group's share of a gap: its summed difference over the episodes where both rows have
+    # a value (the gap's own denominator), so the shares add up to the gap.
+    d_cr, d_ade = ref[0] - val[0], ref[1] - val[1]
+    n_cr, n_ade = np.isfinite(d_cr).sum(), np.isfinite(d_ade).sum()
     print(f"  causal against {name}, by group (causal's conflict type / {name}'s):")
     for key, idx in sorted(groups.items(), key=lambda kv: -len(kv[1])):
         cr_a, cr_b = np.nanmean(ref[0][idx]), np.nanmean(val[0][idx])
         ade_a, ade_b = np.nanmean(ref[1][idx]), np.nanmean(val[1][idx])
-        # A group's share of a gap: its summed difference over all episodes of the row.
-        share_cr = 100 * np.nansum(ref[0][idx] - val[0][idx]) / n
-        share_ade = np.nansum(ref[1][idx] - val[1][idx]) / np.isfinite(ref[1] - val[1]).sum()
+        share_cr = 100 * np.nansum(d_cr[idx]) / n_cr
+        share_ade = np.nansum(d_ade[idx]) / n_ade
         print(
             f"    {key:30s} {len(idx):4d} episodes  CR {100 * cr_a:5.1f} / {100 * cr_b:5.1f} %"
             f" ({share_cr:+5.1f} points of the gap)  ADE {ade_a:.2f} / {ade_b:.2f} m"

@@ -199,9 +199,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         # So may a model without the plan features seed one with them (zero output too). The
         # two kinds of plan ("noisy", "self") read the same tensors: either may seed the other.
         adds_plan = start.config.plan_features == "none" != model_cfg.plan_features
-        if model_cfg.plan_features != "none" and start.config.plan_features != "none":
-            same = same.replace(plan_features=model_cfg.plan_features)
-        if adds_plan:
+        if model_cfg.plan_features != "none":
             same = same.replace(plan_features=model_cfg.plan_features)
         # And one without the lanes' right of way (its input columns start at zero).
         adds_priority = model_cfg.lane_priority and not start.config.lane_priority
