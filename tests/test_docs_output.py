@@ -23,22 +23,30 @@ def documented_output() -> list[str]:
     return block.strip().splitlines()
 
 
+#: Whole-episode rates of the summary line, compared exactly.
+RATES = re.compile(
+    r"(episode CR|ego-adversary CR|non-ego CR|not in the log|ORR|fallbacks) (\S+?)(?=,|\)| \(|$)"
+)
+
+
 def test_the_quickstart_prints_what_the_docs_show(capsys):
     code = main(["stress", "--scenario", "intersection", "--episodes", "4"])
     assert code == 0
     printed = capsys.readouterr().out.strip().splitlines()
     documented = documented_output()
     assert len(printed) == len(documented)
-    # The last line is compute time; every other line is a result of the same scenes and
-    # seeds. Rates are exact; ADE, FDE, TTC and clearance may differ in the last digits on
-    # another CPU (float rounding in the network's matrix products).
+    # Every line but the last (compute time) has the same words and the same number of
+    # numbers. Another CPU rounds the network's matrix products differently, and over 10 s of
+    # closed loop that changes samples: the rates and the 1-4 s displacements agree across
+    # the CPUs we have run on; later displacements, TTC and clearance need not
+    # (docs/quickstart.md).
     for got, want in zip(printed[:-1], documented[:-1], strict=True):
-        assert NUMBER.sub("#", got) == NUMBER.sub("#", want), (got, want)
-        np.testing.assert_allclose(
-            [float(x) for x in NUMBER.findall(got)],
-            [float(x) for x in NUMBER.findall(want)],
-            rtol=0.01,
-            atol=0.005,
-            err_msg=f"docs/quickstart.md shows {want!r}, the command printed {got!r}",
-        )
+        assert NUMBER.sub("#", got).split() == NUMBER.sub("#", want).split(), (got, want)
+    table = {line.split()[0]: [float(x) for x in line.split()[1:]] for line in printed[2:5]}
+    shown = {line.split()[0]: [float(x) for x in line.split()[1:]] for line in documented[2:5]}
+    for group in table:
+        assert table[group][2:] == shown[group][2:], (group, "ORR, HBR and CR")
+    np.testing.assert_allclose(table["1-4s"][:2], shown["1-4s"][:2], rtol=0.01, atol=0.005)
+    assert RATES.findall(printed[5]) == RATES.findall(documented[5])
+    assert len(RATES.findall(printed[5])) == 6
     assert printed[-1].endswith("s per replan")

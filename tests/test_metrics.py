@@ -127,6 +127,29 @@ def test_new_vehicle_collisions_are_the_rollouts_non_ego_overlaps_the_log_does_n
     assert new_vehicle_collisions(log, log) == []
 
 
+def test_non_ego_cr_new_leaves_out_the_pairs_that_overlap_in_the_log_too(road):
+    """The log's own overlapping pair (rows 1 and 3) is a non-ego collision, not a new one;
+    row 2 running into row 1 in the rollout is both. The log's rows may come in any order:
+    agents pair up by id."""
+    steps = HIST + 10
+    pos = np.zeros((4, steps, 2))
+    pos[0, :, 1] = 10.0  # the ego, clear of everyone
+    pos[3, :, 0] = 3.0  # rows 1 and 3 overlap throughout, in the log too
+    pos[2, :, 0] = 20.0
+    ids = ["ego", "a", "b", "c"]
+    order = [2, 0, 3, 1]  # the log's rows, shuffled
+    log = make_scene(road, pos[order], ids=[ids[i] for i in order])
+    log = log.replace(ego_index=1)
+    own = metrics.evaluate_scene(make_scene(road, pos, ids=ids), log)
+    assert own["cr_non_ego"] == 1.0 and own["cr_non_ego_new"] == 0.0
+    assert math.isnan(metrics.evaluate_scene(make_scene(road, pos, ids=ids))["cr_non_ego_new"])
+    sim_pos = pos.copy()
+    sim_pos[2, HIST:, 0] = np.maximum(2.0, 20.0 - 3.0 * np.arange(1, 11))  # into row 1
+    new = metrics.evaluate_scene(make_scene(road, sim_pos, ids=ids), log)
+    assert new["cr_non_ego"] == 1.0 and new["cr_non_ego_new"] == 1.0
+    assert new["cr"] == 0.0
+
+
 # ---------------------------------------------------------------------- HBR
 def straight_motion(v0, acc, yaw, steps=HIST + 30):
     """Positions, yaws and speeds of a car along heading ``yaw`` with constant acceleration."""

@@ -291,7 +291,14 @@ def test_compare_cli_table_json_and_plots(template, tmp_path, capsys):
     assert main(["compare", str(a), str(b), "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert [r["label"] for r in result["runs"]] == ["a (guidance=none)", "b (guidance=full)"]
-    assert set(result["metrics"]) == {"cr", "cr_ego_adversary", "hbr_ego", "orr", "ade"}
+    assert set(result["metrics"]) == {
+        "cr",
+        "cr_ego_adversary",
+        "cr_non_ego_new",
+        "hbr_ego",
+        "orr",
+        "ade",
+    }
     out = tmp_path / "cmp"
     assert main(["compare", str(a), str(b), "--out", str(out)]) == 0
     text = capsys.readouterr().out

@@ -363,7 +363,8 @@ def _print_stress(args: argparse.Namespace, config, summary: dict, times: dict) 
         )
     print(
         f"episode CR {fmt(summary['cr'])}, ego-adversary CR {fmt(summary['cr_ego_adversary'])}, "
-        f"non-ego CR {fmt(summary['cr_non_ego'])}, ORR {fmt(summary['orr'])}, "
+        f"non-ego CR {fmt(summary['cr_non_ego'])} (not in the log "
+        f"{fmt(summary['cr_non_ego_new'])}), ORR {fmt(summary['orr'])}, "
         f"mean min TTC {fmt(summary['mean_min_ttc'])} s, min clearance to adversary "
         f"{fmt(summary['mean_min_clearance_adversary'])} m, fallbacks {summary['fallbacks']}"
     )

@@ -27,6 +27,7 @@ SCENE_KEYS = (
     "cr",
     "cr_all_agents",
     "cr_non_ego",
+    "cr_non_ego_new",
     "cr_ego_adversary",
     "hbr_ego",
     "hbr_all",

@@ -7,7 +7,13 @@ import math
 
 import numpy as np
 
-from counterscene_env.metrics.common import horizon_steps, in_horizon, nan_mean, rollout_slice
+from counterscene_env.metrics.common import (
+    horizon_steps,
+    in_horizon,
+    nan_mean,
+    rollout_slice,
+    rollout_steps,
+)
 from counterscene_env.scene.core import Scene
 
 #: An agent is parked if its speed stays below this at every valid step of the window, m/s.
@@ -96,26 +102,39 @@ def align_agents(sim: Scene, factual: Scene) -> np.ndarray:
     return np.array([lookup[aid] for aid in sim.agent_ids.tolist()], dtype=np.int64)
 
 
-def displacement_steps(sim: Scene, factual: Scene) -> tuple[np.ndarray, np.ndarray]:
-    """Displacement of each simulated agent from its factual log over the rollout.
+def logged_rollout(sim: Scene, factual: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The factual log over ``sim``'s rollout, row by row of ``sim`` (:func:`align_agents`).
 
-    Rollout step r of the sim is compared with step ``factual.current_index + 1 + r`` of the
-    factual scene (both start from "now"); factual steps past its end count as invalid.
+    Rollout step r of the sim is step ``factual.current_index + 1 + r`` of the factual scene
+    (both start from "now"); factual steps past its end count as invalid.
+
+    Returns:
+        ``[N_sim, T_roll, 2]`` m positions, ``[N_sim, T_roll]`` rad yaws and
+        ``[N_sim, T_roll]`` bool validity (zeros where invalid).
+    """
+    rows = align_agents(sim, factual)
+    n, t_roll = sim.num_agents, rollout_steps(sim)
+    start = factual.current_index + 1
+    avail = max(0, min(t_roll, factual.num_steps - start))
+    pos, yaw = np.zeros((n, t_roll, 2)), np.zeros((n, t_roll))
+    ok = np.zeros((n, t_roll), dtype=bool)
+    pos[:, :avail] = factual.positions[rows, start : start + avail]
+    yaw[:, :avail] = factual.yaws[rows, start : start + avail]
+    ok[:, :avail] = factual.valid[rows, start : start + avail]
+    return pos, yaw, ok
+
+
+def displacement_steps(sim: Scene, factual: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """Displacement of each simulated agent from its factual log over the rollout
+    (:func:`logged_rollout` aligns the two).
 
     Returns:
         ``[N_sim, T_roll]`` m (NaN where undefined) and ``[N_sim, T_roll]`` bool, True where both
         are valid.
     """
-    rows = align_agents(sim, factual)
     sl = rollout_slice(sim)
     p_sim, ok_sim = sim.positions[:, sl], sim.valid[:, sl]
-    t_roll = ok_sim.shape[1]
-    start = factual.current_index + 1
-    avail = max(0, min(t_roll, factual.num_steps - start))
-    p_fac = np.zeros_like(p_sim)
-    ok_fac = np.zeros_like(ok_sim)
-    p_fac[:, :avail] = factual.positions[rows, start : start + avail]
-    ok_fac[:, :avail] = factual.valid[rows, start : start + avail]
+    p_fac, _, ok_fac = logged_rollout(sim, factual)
     ok = ok_sim & ok_fac
     dist = np.where(ok, np.linalg.norm(p_sim - p_fac, axis=-1), np.nan)
     return dist, ok

@@ -36,6 +36,7 @@ from counterscene_env.metrics.safety import (
     hbr_all_of,
     hbr_ego_of,
     hbr_paper,
+    logged_overlap_pairs,
     min_clearance,
     min_ttc_ego,
 )
@@ -80,7 +81,9 @@ def evaluate_scene(
         ``CR`` (ego collided at or before h), ``CR_adv`` (with the adversary; NaN without one)
         and ``DEC`` (the ego's strongest braking within h, m/s^2, so ``DEC > x`` is HBR at
         ``-x``) for each h, and the whole-rollout values are
-        ``cr``, ``cr_all_agents``, ``cr_non_ego``, ``cr_ego_adversary``, ``hbr_ego``,
+        ``cr``, ``cr_all_agents``, ``cr_non_ego`` (two agents other than the ego overlap),
+        ``cr_non_ego_new`` (the same without the pairs that overlap in ``factual`` too: the
+        collisions the simulation made; NaN without ``factual``), ``cr_ego_adversary``, ``hbr_ego``,
         ``hbr_all``, ``hbr_paper``, ``orr`` (fractions; also split into ``orr_parked`` over the
         vehicles parked for the whole rollout, :func:`parked_agents`, and ``orr_moving`` over
         the others), ``min_ttc`` (s), ``min_clearance_adversary`` (m) and
@@ -97,10 +100,13 @@ def evaluate_scene(
     ego_acc = acc[e][mask[e]]
     peak_decel = max(0.0, -float(ego_acc.min())) if ego_acc.size else math.nan
     dist = ok = None
+    cr_non_ego_new = math.nan
     if factual is not None:
         dist, ok = displacement_steps(sim, factual)
         rows = non_ego_vehicles(sim)
         dist, ok = dist[rows], ok[rows]
+        new = overlaps & ~logged_overlap_pairs(sim, factual)[None]
+        cr_non_ego_new = float(any_collision(new, e, include_ego=False).any())
 
     adv_hits = None
     if adversary is not None:
@@ -137,6 +143,7 @@ def evaluate_scene(
         "cr": float(ego_hits.any()),
         "cr_all_agents": float(any_collision(overlaps, e, include_ego=True).any()),
         "cr_non_ego": float(any_collision(overlaps, e, include_ego=False).any()),
+        "cr_non_ego_new": cr_non_ego_new,
         "cr_ego_adversary": cr_adv,
         "hbr_ego": hbr_ego_of(flags, mask, sim),
         "hbr_all": hbr_all_of(flags, mask, sim),

@@ -16,6 +16,7 @@ from counterscene_env.metrics.common import (
     in_horizon,
     rollout_slice,
 )
+from counterscene_env.metrics.realism import logged_rollout
 from counterscene_env.scene.core import Scene
 
 
@@ -48,15 +49,31 @@ def agent_overlaps(scene: Scene) -> np.ndarray:
     )
 
 
+def logged_overlap_pairs(sim: Scene, factual: Scene) -> np.ndarray:
+    """``[N_sim, N_sim]`` bool: the pairs of ``sim``'s agents whose boxes overlap in the
+    factual log at some step of ``sim``'s rollout (:func:`~counterscene_env.metrics.realism.
+    logged_rollout` aligns rows and steps). Real logs have such pairs of their own:
+    pedestrians walking in groups, imprecise boxes (docs/metrics.md)."""
+    pos, yaw, ok = logged_rollout(sim, factual)
+    return geometry.overlaps_over_time(pos, yaw, sim.extents, ok).any(0)
+
+
+def new_overlaps(sim: Scene, factual: Scene) -> np.ndarray:
+    """``[T_roll, N, N]`` bool: :func:`agent_overlaps` of ``sim`` without the pairs that
+    overlap in the log too (:func:`logged_overlap_pairs`): the collisions the closed loop
+    made, not the log's own."""
+    return agent_overlaps(sim) & ~logged_overlap_pairs(sim, factual)[None]
+
+
 def new_vehicle_collisions(sim: Scene, factual: Scene) -> list[tuple[int, int, int]]:
     """Pairs of vehicles other than the ego whose boxes overlap in ``sim``'s rollout but
-    never in ``factual`` (the log over the same steps): ``(a, b, t)`` with rows ``a < b`` and
-    ``t`` the first overlapping rollout step (an index into ``rollout_slice(sim)``). The
-    collisions the closed loop's traffic made that the log does not have."""
+    never in ``factual`` over the same steps (:func:`new_overlaps`): ``(a, b, t)`` with rows
+    ``a < b`` of ``sim`` and ``t`` the first overlapping rollout step (an index into
+    ``rollout_slice(sim)``)."""
     vehicle = sim.vehicle_mask.copy()
     vehicle[sim.ego_index] = False
-    overlaps = agent_overlaps(sim) & vehicle[None, :, None] & vehicle[None, None, :]
-    new = np.triu(overlaps.any(0) & ~agent_overlaps(factual).any(0), 1)
+    overlaps = new_overlaps(sim, factual) & vehicle[None, :, None] & vehicle[None, None, :]
+    new = np.triu(overlaps.any(0), 1)
     return [
         (int(a), int(b), int(np.argmax(overlaps[:, a, b])))
         for a, b in zip(*np.nonzero(new), strict=True)

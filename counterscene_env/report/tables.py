@@ -81,6 +81,13 @@ EPISODE_METRICS = {
             "cr_ego_adversary", "ego-adversary CR", "rate", True, field("cr_ego_adversary")
         ),
         EpisodeMetric("cr_non_ego", "non-ego CR (traffic)", "rate", True, field("cr_non_ego")),
+        EpisodeMetric(
+            "cr_non_ego_new",
+            "non-ego CR, pairs the log does not have",
+            "rate",
+            True,
+            field("cr_non_ego_new"),
+        ),
         EpisodeMetric("hbr_ego", "HBR (ego brakes < -3 m/s²)", "rate", True, field("hbr_ego")),
         EpisodeMetric("orr", "ORR", "fraction", False, field("orr")),
         EpisodeMetric("ade", "ADE (whole rollout)", "m", False, last_second("ADE")),
@@ -98,7 +105,7 @@ EPISODE_METRICS = {
 }
 
 #: The metrics ``counterscene compare`` puts side by side.
-COMPARE_KEYS = ("cr", "cr_ego_adversary", "hbr_ego", "orr", "ade")
+COMPARE_KEYS = ("cr", "cr_ego_adversary", "cr_non_ego_new", "hbr_ego", "orr", "ade")
 
 
 def per_second_values(records: Sequence[dict], key: str) -> tuple[list[str], np.ndarray]:

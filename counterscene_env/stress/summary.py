@@ -33,6 +33,7 @@ def summarize(records: Sequence[dict], config: StressConfig) -> dict:
         "cr": overall["cr"],
         "cr_ego_adversary": overall["cr_ego_adversary"],
         "cr_non_ego": overall["cr_non_ego"],
+        "cr_non_ego_new": overall["cr_non_ego_new"],
         "hbr_ego": overall["hbr_ego"],
         "orr": overall["orr"],
         "orr_moving": overall["orr_moving"],
