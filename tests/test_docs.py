@@ -52,3 +52,33 @@ def test_every_docs_page_is_in_the_nav():
     listed = set(re.findall(r":\s*([\w/]+\.md)\s*$", nav, flags=re.MULTILINE))
     pages = {p.relative_to(DOCS).as_posix() for p in DOCS.rglob("*.md")}
     assert pages - listed == set(), "pages missing from the nav in mkdocs.yml"
+
+
+def _tool_help(path: Path, capsys, monkeypatch) -> str:
+    """What ``python tools/NAME.py --help`` prints, run in this process."""
+    import runpy
+
+    import pytest
+
+    monkeypatch.setattr("sys.argv", [str(path), "--help"])
+    with pytest.raises(SystemExit) as exit_:
+        runpy.run_path(str(path), run_name="__main__")
+    assert exit_.value.code == 0, f"{path.name} --help failed"
+    return capsys.readouterr().out
+
+
+def test_every_tool_command_the_docs_cite_exists_and_takes_its_flags(capsys, monkeypatch):
+    """The measurements in docs/ and the README cite ``python tools/NAME.py ... --flag``:
+    each such tool runs, and each flag cited for it is one it takes."""
+    cited: dict[str, set[str]] = {}
+    pages = [ROOT / "README.md", *DOCS.rglob("*.md")]
+    for page in pages:
+        for name, rest in re.findall(r"python tools/(\w+)\.py([^`\n]*)", page.read_text()):
+            cited.setdefault(name, set()).update(re.findall(r"(?<![\w-])--[a-z][\w-]*", rest))
+    assert cited, "no tool command found in the docs"
+    for name, flags in sorted(cited.items()):
+        path = ROOT / "tools" / f"{name}.py"
+        assert path.exists(), f"the docs cite tools/{name}.py, which does not exist"
+        text = _tool_help(path, capsys, monkeypatch)
+        missing = sorted(f for f in flags if f not in text)
+        assert not missing, f"tools/{name}.py does not take {missing}, which the docs cite"
