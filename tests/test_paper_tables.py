@@ -57,6 +57,30 @@ def test_a_row_with_many_more_collisions_is_outside_the_noise_and_a_copy_is_not(
     assert not cells["no_jerk"]["3s"]["CR"].paired.significant
 
 
+def test_whole_episode_rates_pair_third_party_collisions_with_the_reference():
+    """Under every table: the ego's whole-episode CRs and the third parties' collisions the
+    log does not have, each row paired with CounterScene; a record from before the key
+    existed counts as nothing measured, not as no collision."""
+
+    def rec(cr: float, third: float | None, adversary: str | None = "a7") -> dict:
+        r = {**_record(cr, 2.0, adversary=adversary), "cr": cr, "cr_ego_adversary": cr}
+        return r if third is None else {**r, "cr_non_ego_new": third}
+
+    reference = [rec(1.0, 0.0) for _ in range(30)]
+    through_others = [rec(1.0, 1.0 if i < 15 else 0.0) for i in range(30)]
+    old = [rec(0.0, None, adversary=None) for _ in range(30)]
+    cells = paper_tables.table(
+        "main", {"counterscene": reference, "ttc": through_others, "unguided": old}
+    )
+    third = cells["ttc"][paper_tables.EPISODE]["cr_non_ego_new"]
+    assert third.estimate.value == 0.5 and third.paired.b_only == 15 and third.paired.significant
+    assert cells["counterscene"][paper_tables.EPISODE]["cr"].paired is None
+    unguided = cells["unguided"][paper_tables.EPISODE]
+    assert unguided["cr_non_ego_new"].estimate.n == 0 and unguided["cr_non_ego_new"].paired.n == 0
+    assert unguided["cr_ego_adversary"].estimate.value == 0.0  # no adversary: no such collision
+    assert unguided["cr"].paired.a_only == 30
+
+
 def test_rows_of_each_table_and_refused_settings(tmp_path):
     assert paper.rows_for("intersection")[0] == "counterscene"
     # Real scenes are seated with the log the real-logs table's first horizon needs.
@@ -109,6 +133,8 @@ def test_paper_tables_on_stored_logs_resumes_and_writes_timings_apart(generated,
     assert real["counterscene"]["5s"]["ADE"]["n"] == 0  # the 3.2 s rollouts never reach 5 s
     assert real["counterscene"]["3s"]["CR"]["paired"] is None
     assert real["unguided"]["3s"]["CR"]["paired"]["n"] == 2
+    third = real["unguided"][paper_tables.EPISODE]["cr_non_ego_new"]
+    assert third["n"] == 2 and third["paired"]["n"] == 2
     assert "seconds" not in json.dumps(doc)  # compute times are in timings.json only
     assert json.loads((out / "timings.json").read_text())["row_seconds"]["logs.npz"]
     lines = {r: (out / "logs.npz" / r / "episodes.jsonl").read_text() for r in real}
@@ -118,6 +144,7 @@ def test_paper_tables_on_stored_logs_resumes_and_writes_timings_apart(generated,
     assert again == lines  # nothing ran twice
     assert json.loads((out / "tables.json").read_text())["tables"] == json.loads(first)["tables"]
     assert "Real logs at 3 s, 5 s and 7 s" in (out / "tables.md").read_text()
+    assert "| CR third parties (%) |" in (out / "tables.md").read_text()
     assert (
         "real scenes with at least 3 s of log after their start" in (out / "tables.md").read_text()
     )

@@ -16,6 +16,8 @@ from counterscene_env.metrics import json_safe
 from counterscene_env.report.document import fmt, interval
 from counterscene_env.report.paper_tables import (
     COLUMNS,
+    EPISODE,
+    EPISODE_RATES,
     METRICS,
     PAIRED,
     PAPER,
@@ -139,7 +141,43 @@ def _table(name: str, cells: dict, built: dict, seconds: dict[str, float]) -> li
             if figures is not None:
                 lines.append(_paper_row(paper_names[row], name, figures))
         lines += ["", _paired_lines(rows, cells, column, labels), ""]
+    lines += _episode_table(rows, cells, labels)
     return lines
+
+
+def _episode_table(rows: list[str], cells: dict, labels: dict) -> list[str]:
+    """The whole-episode rates (``paper_tables.EPISODE_RATES``), each row paired with the
+    reference."""
+    lines = [
+        f"#### {EPISODE}",
+        "",
+        "CR third parties: two agents other than the ego collide, a pair whose boxes do not "
+        "overlap in the log too.",
+        "",
+        "| row | n | " + " | ".join(f"{label} (%)" for label in EPISODE_RATES.values()) + " |",
+        "|" + "---|" * (len(EPISODE_RATES) + 2),
+    ]
+    for row in rows:
+        metrics = cells[row][EPISODE]
+        n = max(c.estimate.n for c in metrics.values())
+        vals = [interval(metrics[k].estimate, "rate") for k in EPISODE_RATES]
+        lines.append(f"| {labels[row]} | {n} | " + " | ".join(vals) + " |")
+    lines += ["", f"Paired with {labels[rows[0]]} ({EPISODE}, row minus reference):", ""]
+    for row in rows[1:]:
+        parts = []
+        for key, label in EPISODE_RATES.items():
+            test = cells[row][EPISODE][key].paired
+            if test is None or test.n == 0 or math.isnan(test.difference):
+                parts.append(f"{label} n/a")
+                continue
+            verdict = "outside the noise" if test.significant else "inside the noise"
+            d, lo, hi = (_signed(100 * x) for x in (test.difference, test.low, test.high))
+            parts.append(
+                f"{label} {d} points [{lo}, {hi}], {test.a_only} against {test.b_only} "
+                f"discordant, p = {test.p_value:.2g}, {verdict}"
+            )
+        lines.append(f"- {labels[row]}: " + "; ".join(parts))
+    return [*lines, ""]
 
 
 def _paper_row(paper_name: str, name: str, figures: tuple) -> str:

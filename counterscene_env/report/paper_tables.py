@@ -10,6 +10,9 @@ Tables (rows: ``stress.paper.TABLE_ROWS``; metrics: :data:`METRICS`):
 - ``real``: real logs at 3 s, 5 s and 7 s (the shape of the paper's zero-shot table). A log
   whose rollout ends before a horizon gives no value there; nothing is extrapolated.
 
+Under every table, the whole-episode rates (:data:`EPISODE_RATES`): the ego's collisions over
+the whole rollout, and collisions between two other agents that the log does not have.
+
 Metrics. ADE, FDE (m) and ORR as in ``metrics``; two CRs, named: **CR ego-adversary** (the
 paper's main text: the ego collides with the selected adversary; an episode without an
 adversary counts as no such collision) and **CR ego-any** (the paper's appendix and
@@ -68,6 +71,17 @@ TITLES = {
 }
 #: The metrics paired with the CounterScene row in every table.
 PAIRED = ("CR_adv", "CR", "ADE")
+
+#: The column of whole-episode rates under every table (record key -> label), each paired
+#: with the CounterScene row: the ego's collisions over the whole rollout, and collisions
+#: between two other agents that the log does not have (``metrics.evaluate_scene``'s
+#: ``cr_non_ego_new``: real logs hold overlapping boxes of their own).
+EPISODE = "whole episode"
+EPISODE_RATES = {
+    "cr": "CR ego-any",
+    "cr_ego_adversary": "CR ego-adversary",
+    "cr_non_ego_new": "CR third parties",
+}
 
 # The paper's figures: {table: {paper row: {column: (ADE, FDE, ORR, HBR, CR)}}}, ORR, HBR,
 # CR as fractions. Its HBR is a share of agent-steps and its CR the ego-adversary one.
@@ -157,6 +171,20 @@ def per_episode(records: Sequence[dict], key: str, seconds: Sequence[int]) -> np
     return out
 
 
+def episode_flags(records: Sequence[dict], key: str) -> np.ndarray:
+    """``[E]`` whole-episode 0/1 flag ``key`` (of :data:`EPISODE_RATES`) per episode; NaN
+    where a record lacks it (one written before the key existed). An episode without an
+    adversary has no collision with one (0)."""
+    out = np.full(len(records), np.nan)
+    for i, r in enumerate(records):
+        if key == "cr_ego_adversary" and r.get("adversary_id") is None:
+            out[i] = 0.0
+            continue
+        value = r.get(key)
+        out[i] = math.nan if value is None else float(value)
+    return out
+
+
 def _value(record: dict, row: dict, key: str) -> float:
     if key in HBR_THRESHOLDS:
         dec = row.get("DEC")
@@ -205,6 +233,13 @@ def table(table_name: str, runs: dict[str, Sequence[dict]]) -> dict[str, dict[st
                     test = paired(ref, values, is_rate)
                 cell = Cell(estimate(values, is_rate), test)
                 out.setdefault(row, {}).setdefault(column, {})[key] = cell
+    for key in EPISODE_RATES:
+        ref = episode_flags(runs[reference], key)
+        for row in rows:
+            flags = ref if row == reference else episode_flags(runs[row], key)
+            n = min(len(ref), len(flags))
+            test = None if row == reference else stats.paired_rate(ref[:n], flags[:n])
+            out[row].setdefault(EPISODE, {})[key] = Cell(stats.rate(flags), test)
     return out
 
 
