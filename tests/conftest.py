@@ -13,6 +13,16 @@ from counterscene_env.scene import RoadMap, Scene
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """Under pytest-xdist (``-n``, pyproject.toml) each worker is one of several processes
+    on the machine's cores: one torch thread each, as two processes of two threads each on 2
+    cores run many times slower."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        import torch
+
+        torch.set_num_threads(1)
+
+
 def straight_road(lanes: int = 2, length: float = 300.0) -> RoadMap:
     """A straight road along +x, lanes 4 m wide centred on y = 0, 4, ...; drivable y in [-2, 4 lanes - 2]."""
     return RoadMap.from_network(RoadNetwork.straight_road_network(lanes, length=length))
