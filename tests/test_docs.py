@@ -5,7 +5,10 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import re
+import runpy
 from pathlib import Path
+
+import pytest
 
 from counterscene_env.cli import _parser
 
@@ -56,10 +59,6 @@ def test_every_docs_page_is_in_the_nav():
 
 def _tool_help(path: Path, capsys, monkeypatch) -> str:
     """What ``python tools/NAME.py --help`` prints, run in this process."""
-    import runpy
-
-    import pytest
-
     monkeypatch.setattr("sys.argv", [str(path), "--help"])
     with pytest.raises(SystemExit) as exit_:
         runpy.run_path(str(path), run_name="__main__")

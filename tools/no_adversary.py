@@ -2,10 +2,10 @@
 
 Selects on each scene's logged future as the closed loop does at reset
 (``sim.adversaries.select_on_log``, today's default settings) and, for every episode without
-an adversary, asks what the paper's rules alone (no strict gates) would have chosen: how many
-conflicts they tier, which strict gates the chosen one fails (``far``: closest approach
-``d_min`` >= 15 m; ``truncated``: closest on the last jointly valid step; ``drifting_apart``;
-``parked``) and its ``d_min`` and arrival gap. Prints JSON. Develop on the development seeds
+an adversary, asks what the paper's rules alone (no strict gates) would have chosen: which
+strict gates that choice fails (``far``: closest approach ``d_min`` >= 15 m; ``truncated``:
+closest on the last jointly valid step; ``drifting_apart``; ``parked``) and its ``d_min``
+and arrival gap. Prints JSON. Develop on the development seeds
 (5000-5199), never on the held-out ones:
 
     python tools/no_adversary.py intersection --episodes 200 --seed 5000
@@ -19,9 +19,9 @@ import json
 
 import numpy as np
 
-from counterscene_env.adversary.conflicts import MIN_JOINT_STEPS, mine, strict_gate_failures
+from counterscene_env.adversary.conflicts import MIN_JOINT_STEPS, strict_gate_failures
 from counterscene_env.adversary.selection import select_adversary
-from counterscene_env.adversary.tracks import check_eligible, check_tracks
+from counterscene_env.adversary.tracks import check_tracks
 from counterscene_env.scene.sources import scenes_for
 from counterscene_env.sim.config import SimConfig
 
@@ -55,17 +55,19 @@ def main() -> None:
             counts["adversary"] += 1
             continue
         paper = select_adversary("causal", pos, valid, scene.ego_index, strict=False, **kw)
-        tracks = check_tracks(
-            pos, valid, scene.ego_index, speeds=speeds, dt=scene.dt, min_joint_steps=MIN_JOINT_STEPS
-        )
-        mined = mine(tracks, check_eligible(vehicles, scene.num_agents), lo, False, MIN_JOINT_STEPS)
-        tiered = [c for c in mined if c.tier is not None]
         record = {"scene_seed": scene.metadata.get("seed"), "fallback": ours.fallback}
-        record["paper_tiered"] = len(tiered)
         if paper.conflict is None:
             counts["no adversary, nor by the paper's rules"] += 1
         else:
             c = paper.conflict
+            tracks = check_tracks(
+                pos,
+                valid,
+                scene.ego_index,
+                speeds=speeds,
+                dt=scene.dt,
+                min_joint_steps=MIN_JOINT_STEPS,
+            )
             failed = strict_gate_failures(tracks, c, lo)
             gates.update(failed)
             counts["no adversary; the paper's rules have one"] += 1

@@ -58,21 +58,15 @@ def logged_overlap_pairs(sim: Scene, factual: Scene) -> np.ndarray:
     return geometry.overlaps_over_time(pos, yaw, sim.extents, ok).any(0)
 
 
-def new_overlaps(sim: Scene, factual: Scene) -> np.ndarray:
-    """``[T_roll, N, N]`` bool: :func:`agent_overlaps` of ``sim`` without the pairs that
-    overlap in the log too (:func:`logged_overlap_pairs`): the collisions the closed loop
-    made, not the log's own."""
-    return agent_overlaps(sim) & ~logged_overlap_pairs(sim, factual)[None]
-
-
 def new_vehicle_collisions(sim: Scene, factual: Scene) -> list[tuple[int, int, int]]:
     """Pairs of vehicles other than the ego whose boxes overlap in ``sim``'s rollout but
-    never in ``factual`` over the same steps (:func:`new_overlaps`): ``(a, b, t)`` with rows
+    never in ``factual`` over the same steps (:func:`logged_overlap_pairs`): ``(a, b, t)`` with rows
     ``a < b`` of ``sim`` and ``t`` the first overlapping rollout step (an index into
     ``rollout_slice(sim)``)."""
     vehicle = sim.vehicle_mask.copy()
     vehicle[sim.ego_index] = False
-    overlaps = new_overlaps(sim, factual) & vehicle[None, :, None] & vehicle[None, None, :]
+    overlaps = agent_overlaps(sim) & ~logged_overlap_pairs(sim, factual)[None]
+    overlaps &= vehicle[None, :, None] & vehicle[None, None, :]
     new = np.triu(overlaps.any(0), 1)
     return [
         (int(a), int(b), int(np.argmax(overlaps[:, a, b])))

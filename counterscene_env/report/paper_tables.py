@@ -171,16 +171,18 @@ def per_episode(records: Sequence[dict], key: str, seconds: Sequence[int]) -> np
     return out
 
 
+def _no_adversary_collision(record: dict, key: str) -> bool:
+    """``key`` is an ego-adversary CR (per second or whole episode) and the episode had no
+    adversary: the ego did not collide with one (0), not "nothing to measure"."""
+    return key in ("CR_adv", "cr_ego_adversary") and record.get("adversary_id") is None
+
+
 def episode_flags(records: Sequence[dict], key: str) -> np.ndarray:
     """``[E]`` whole-episode 0/1 flag ``key`` (of :data:`EPISODE_RATES`) per episode; NaN
-    where a record lacks it (one written before the key existed). An episode without an
-    adversary has no collision with one (0)."""
+    where a record lacks it (one written before the key existed)."""
     out = np.full(len(records), np.nan)
     for i, r in enumerate(records):
-        if key == "cr_ego_adversary" and r.get("adversary_id") is None:
-            out[i] = 0.0
-            continue
-        value = r.get(key)
+        value = 0.0 if _no_adversary_collision(r, key) else r.get(key)
         out[i] = math.nan if value is None else float(value)
     return out
 
@@ -191,8 +193,8 @@ def _value(record: dict, row: dict, key: str) -> float:
         if dec is None:  # a record written before DEC existed: only the -3 threshold
             return row.get("HBR", math.nan) if key == "HBR3" else math.nan
         return math.nan if math.isnan(dec) else float(dec > HBR_THRESHOLDS[key])
-    if key == "CR_adv" and record.get("adversary_id") is None:
-        return 0.0  # no adversary: the ego did not collide with one
+    if _no_adversary_collision(record, key):
+        return 0.0
     value = row.get(key)
     return math.nan if value is None else float(value)
 
