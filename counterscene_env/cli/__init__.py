@@ -19,7 +19,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from counterscene_env.cli import data, evaluate, model, paper, report, run
+from counterscene_env.cli import bench, data, evaluate, model, paper, report, run
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -53,8 +53,8 @@ def _parser() -> argparse.ArgumentParser:
     data.add_inspect(sub)
     model.add_train(sub)
     evaluate.add_evaluate_model(sub)
-    model.add_bench(sub)
-    run.add_bench_env(sub)
+    bench.add_bench(sub)
+    bench.add_bench_env(sub)
     run.add_stress(sub)
     report.add_report(sub)
     report.add_compare(sub)

@@ -1,4 +1,4 @@
-"""``counterscene stress`` and ``counterscene bench-env``: closed-loop runs."""
+"""``counterscene stress``: closed-loop runs of a planner against guided traffic."""
 
 from __future__ import annotations
 
@@ -18,7 +18,6 @@ from counterscene_env.cli.common import (
     int_at_least,
     json_safe,
     load_model,
-    parse_overrides,
 )
 
 
@@ -377,63 +376,3 @@ def _print_stress(args: argparse.Namespace, config, summary: dict, times: dict) 
         f"{fmt(times['seconds_per_replan'])} s per replan"
         + (f" ({args.workers} workers)" if args.workers > 1 else "")
     )
-
-
-def add_bench_env(sub) -> None:
-    """Register ``counterscene bench-env``."""
-    bv = sub.add_parser(
-        "bench-env",
-        help="steps per second of CounterScene-v0",
-        description=(
-            "Step CounterScene-v0 --steps times with seeded random actions (resetting at "
-            "episode ends) and report steps per second, with and without resets."
-        ),
-    )
-    bv.add_argument("--scenario", default="intersection", help="scenario (default intersection)")
-    bv.add_argument("--steps", type=int_at_least(1), default=500, help="env steps (default 500)")
-    add_seed_flag(bv, 0, "seed (default 0)")
-    bv.add_argument(
-        "--threads", type=int_at_least(1), help="torch threads (default: torch's choice)"
-    )
-    bv.add_argument(
-        "--policy",
-        default="random",
-        choices=("random", "hold"),
-        help="random actions, or hold speed and course (default random)",
-    )
-    bv.add_argument(
-        "--set",
-        nargs="*",
-        default=[],
-        metavar="KEY=VALUE",
-        help="other config keys (JSON values), e.g. policy_frequency=2 guidance=none",
-    )
-    add_json_flag(bv)
-    bv.set_defaults(func=_cmd_bench_env)
-
-
-def _cmd_bench_env(args: argparse.Namespace) -> int:
-    from counterscene_env.envs.bench import bench_env
-
-    config = {"scenario": args.scenario, **parse_overrides(args.set)}
-    result = bench_env(
-        config, steps=args.steps, seed=args.seed, threads=args.threads, policy=args.policy
-    )
-    if args.json:
-        print(json.dumps(json_safe(result)))
-        return 0
-    c = result["config"]
-    print(
-        f"CounterScene-v0 {c['scenario']}, guidance {c['guidance']}, {c['num_samples']} samples, "
-        f"policy {c['policy_frequency']} Hz, {result['threads']} torch threads, "
-        f"{result['policy']} actions"
-    )
-    print(
-        f"  {result['steps_per_second']:.1f} steps/s over {result['steps']} steps and "
-        f"{result['episodes']} episodes (resets included)"
-    )
-    print(
-        f"  step {1000 * result['step_seconds_mean']:.1f} ms mean ({100 * result['replan_share']:.0f} % "
-        f"world-model replans), reset {result['reset_seconds_mean']:.2f} s mean"
-    )
-    return 0
