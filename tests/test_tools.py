@@ -1,0 +1,49 @@
+"""The research tools whose output other figures rest on (``tools/``)."""
+
+from __future__ import annotations
+
+import runpy
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _run_tool(name: str, argv: list[str], monkeypatch) -> None:
+    monkeypatch.setattr("sys.argv", [f"tools/{name}.py", *argv])
+    runpy.run_path(str(ROOT / "tools" / f"{name}.py"), run_name="__main__")
+
+
+def test_ngsim_split_holds_out_whole_map_sections_and_copies_nothing(tmp_path, monkeypatch):
+    """The held-out NGSIM figures are honest only if no map section (whose files share
+    vehicles) has files on both sides, and the split links the files rather than copying
+    shared data."""
+    src = tmp_path / "src"
+    src.mkdir()
+    names = [
+        "USA_US101-5_1_T-1.xml",  # a held-out US-101 section ...
+        "USA_US101-5_2_T-1.xml",  # ... with every one of its files
+        "USA_US101-50_1_T-1.xml",  # 50 is not 5: a training section
+        "USA_US101-1_1_S-1.xml",
+        "USA_Peach-3_1_T-1.xml",
+        "USA_Lanker-2_4_T-1.xml",
+    ]
+    for n in names:
+        (src / n).write_text("<commonRoad/>")
+    out = tmp_path / "split"
+    _run_tool("ngsim_split", [str(src), str(out)], monkeypatch)
+    heldout = {p.name for p in (out / "heldout").iterdir()}
+    train = {p.name for p in (out / "train").iterdir()}
+    assert heldout == {"USA_US101-5_1_T-1.xml", "USA_US101-5_2_T-1.xml", "USA_Peach-3_1_T-1.xml"}
+    assert train == set(names) - heldout
+    assert all(p.is_symlink() for p in out.rglob("*.xml"))
+    # Rerunning is harmless (the links exist already).
+    _run_tool("ngsim_split", [str(src), str(out)], monkeypatch)
+    assert {p.name for p in (out / "heldout").iterdir()} == heldout
+
+
+def test_ngsim_split_refuses_a_name_it_cannot_place(tmp_path, monkeypatch):
+    (tmp_path / "scenario.xml").write_text("<commonRoad/>")
+    with pytest.raises(ValueError, match="scenario.xml"):
+        _run_tool("ngsim_split", [str(tmp_path), str(tmp_path / "out")], monkeypatch)
