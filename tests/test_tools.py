@@ -45,5 +45,5 @@ def test_ngsim_split_holds_out_whole_map_sections_and_copies_nothing(tmp_path, m
 
 def test_ngsim_split_refuses_a_name_it_cannot_place(tmp_path, monkeypatch):
     (tmp_path / "scenario.xml").write_text("<commonRoad/>")
-    with pytest.raises(ValueError, match="scenario.xml"):
+    with pytest.raises(ValueError, match=r"scenario\.xml"):
         _run_tool("ngsim_split", [str(tmp_path), str(tmp_path / "out")], monkeypatch)
