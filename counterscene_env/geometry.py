@@ -1,8 +1,9 @@
 """Oriented-box geometry for collision, clearance, off-road and time-to-collision checks.
 
 This module's one job is the vectorised geometry the metrics and the simulator share: corners,
-overlap (separating axis theorem), drivable-area membership, box distance and constant-velocity
-time to collision, plus angle wrapping and frame transforms. It is a lower layer: plain numpy
+overlap (separating axis theorem), drivable-area membership and box distance, plus angle
+wrapping and frame transforms. Constant-velocity time to collision, built on the same
+separating axes, is ``counterscene_env/ttc.py``. It is a lower layer: plain numpy
 and shapely, no scene types.
 
 Conventions (docs/design.md, "Ego-centred frame"): SI units, world frame, yaw in rad from +x counter-clockwise, a box is
@@ -55,7 +56,7 @@ def box_corners(centers: np.ndarray, yaws: np.ndarray, extents: np.ndarray) -> n
     return centers[..., None, :] + np.stack([x, y], axis=-1)
 
 
-def _sat_terms(
+def sat_terms(
     yaws_a: np.ndarray, extents_a: np.ndarray, yaws_b: np.ndarray, extents_b: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Separating axes and the summed half-projections of box pairs.
@@ -92,18 +93,20 @@ def _sat_terms(
     return axis_cos, axis_sin, radii
 
 
-def _project(vec: np.ndarray, axis_cos: np.ndarray, axis_sin: np.ndarray) -> np.ndarray:
+def project_on_axes(vec: np.ndarray, axis_cos: np.ndarray, axis_sin: np.ndarray) -> np.ndarray:
     """``[..., 4]`` projections of ``[..., 2]`` vectors on the four SAT axes."""
     return vec[..., 0, None] * axis_cos + vec[..., 1, None] * axis_sin
 
 
-def _present(centers: np.ndarray, yaws: np.ndarray, extents: np.ndarray, valid) -> np.ndarray:
+def present(centers: np.ndarray, yaws: np.ndarray, extents: np.ndarray, valid) -> np.ndarray:
     """``[...]`` bool: valid and with finite centre, yaw and extents."""
     ok = np.isfinite(centers).all(-1) & np.isfinite(yaws) & np.isfinite(extents).all(-1)
     return ok if valid is None else ok & np.asarray(valid, dtype=bool)
 
 
-def _sanitise(centers, yaws, extents, ok):
+def sanitise_boxes(
+    centers: np.ndarray, yaws: np.ndarray, extents: np.ndarray, ok: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Zero out absent boxes so that their NaNs raise no warnings and reach no other pair."""
     centers = np.where(ok[..., None], centers, 0.0)
     yaws = np.where(ok, yaws, 0.0)
@@ -133,11 +136,11 @@ def boxes_overlap(
     """
     ca, ya, ea = (np.asarray(x, dtype=np.float64) for x in (centers_a, yaws_a, extents_a))
     cb, yb, eb = (np.asarray(x, dtype=np.float64) for x in (centers_b, yaws_b, extents_b))
-    ok_a, ok_b = _present(ca, ya, ea, None), _present(cb, yb, eb, None)
-    ca, ya, ea = _sanitise(ca, ya, ea, ok_a)
-    cb, yb, eb = _sanitise(cb, yb, eb, ok_b)
-    axis_cos, axis_sin, radii = _sat_terms(ya, ea, yb, eb)
-    offset = np.abs(_project(cb - ca, axis_cos, axis_sin))
+    ok_a, ok_b = present(ca, ya, ea, None), present(cb, yb, eb, None)
+    ca, ya, ea = sanitise_boxes(ca, ya, ea, ok_a)
+    cb, yb, eb = sanitise_boxes(cb, yb, eb, ok_b)
+    axis_cos, axis_sin, radii = sat_terms(ya, ea, yb, eb)
+    offset = np.abs(project_on_axes(cb - ca, axis_cos, axis_sin))
     # Strict inequality with a tolerance: separated (or touching) on any one axis => no overlap.
     return (offset < radii - OVERLAP_TOL).all(-1) & ok_a & ok_b
 
@@ -191,7 +194,7 @@ def pairwise_overlap(
     centers = np.asarray(centers, dtype=np.float64)
     yaws = np.asarray(yaws, dtype=np.float64)
     extents = np.asarray(extents, dtype=np.float64)
-    ok = _present(centers, yaws, extents, valid)
+    ok = present(centers, yaws, extents, valid)
     return _pair_overlap_batched(centers[None], yaws[None], extents, ok[None])[0]
 
 
@@ -213,7 +216,7 @@ def overlaps_over_time(
     positions = np.asarray(positions, dtype=np.float64)
     yaws = np.asarray(yaws, dtype=np.float64)
     extents = np.asarray(extents, dtype=np.float64)
-    ok = _present(positions, yaws, extents[:, None], valid)
+    ok = present(positions, yaws, extents[:, None], valid)
     centers_t = positions.transpose(1, 0, 2)  # [T, N, 2]
     return _pair_overlap_batched(centers_t, yaws.T, extents, ok.T)
 
@@ -267,136 +270,6 @@ def points_in_area(area: shapely.Geometry, points: np.ndarray) -> np.ndarray:
     return inside.reshape(points.shape[:-1])
 
 
-# ---------------------------------------------------------------------- time to collision
-def box_time_to_collision(
-    centers_a: np.ndarray,
-    velocities_a: np.ndarray,
-    yaws_a: np.ndarray,
-    extents_a: np.ndarray,
-    centers_b: np.ndarray,
-    velocities_b: np.ndarray,
-    yaws_b: np.ndarray,
-    extents_b: np.ndarray,
-    horizon: float = 10.0,
-    step: float = 0.1,
-) -> np.ndarray:
-    """Element-wise constant-velocity time to collision of box a and box b (broadcasting).
-
-    Both boxes move at constant velocity with their headings held. The result is the first
-    sample time ``k * step`` in ``[0, horizon]`` at which the boxes overlap (as
-    :func:`boxes_overlap`), so the true first-contact time lies in ``(ttc - step, ttc]``.
-
-    Computed in closed form instead of by testing every sample: with headings held, the SAT
-    radii are constant and the offset projections are affine in time, ``o_e(tau) = d.e +
-    tau dv.e``, so the set of overlapping times is one open interval (the intersection of the
-    four per-axis intervals ``|o_e(tau)| < r_e - tol``); the answer is the first sample inside
-    it. This equals sampling every ``step`` (it also finds overlaps shorter than a step that
-    happen to contain a sample) at the cost of a single pass. ``step=0`` gives the exact
-    continuous entry time.
-
-    Args:
-        centers_a, centers_b: ``[..., 2]`` m.
-        velocities_a, velocities_b: ``[..., 2]`` m/s, world frame.
-        yaws_a, yaws_b: ``[...]`` rad.
-        extents_a, extents_b: ``[..., 2]`` m, (length, width).
-        horizon: s, largest time considered.
-        step: s, sampling resolution (0 for the exact time).
-
-    Returns:
-        ``[...]`` float, s: 0 if already overlapping, ``inf`` if no overlap within the horizon
-        or if any input of the element is non-finite.
-    """
-    ca, va, ya, ea = (
-        np.asarray(x, dtype=np.float64) for x in (centers_a, velocities_a, yaws_a, extents_a)
-    )
-    cb, vb, yb, eb = (
-        np.asarray(x, dtype=np.float64) for x in (centers_b, velocities_b, yaws_b, extents_b)
-    )
-    ok_a = _present(ca, ya, ea, np.isfinite(va).all(-1))
-    ok_b = _present(cb, yb, eb, np.isfinite(vb).all(-1))
-    ca, ya, ea = _sanitise(ca, ya, ea, ok_a)
-    cb, yb, eb = _sanitise(cb, yb, eb, ok_b)
-    va, vb = np.where(ok_a[..., None], va, 0.0), np.where(ok_b[..., None], vb, 0.0)
-    axis_cos, axis_sin, radii = _sat_terms(ya, ea, yb, eb)
-    alpha = _project(cb - ca, axis_cos, axis_sin)  # [..., 4] m, offset at tau = 0
-    beta = _project(vb - va, axis_cos, axis_sin)  # [..., 4] m/s, its rate
-    r = radii - OVERLAP_TOL
-    # Per axis |alpha + beta tau| < r  <=>  tau in (lo, hi); beta = 0: always or never.
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = (-r - alpha) / beta
-        t2 = (r - alpha) / beta
-    moving = beta != 0.0
-    inside_now = np.abs(alpha) < r
-    lo = np.where(moving, np.minimum(t1, t2), np.where(inside_now, -np.inf, np.inf))
-    hi = np.where(moving, np.maximum(t1, t2), np.where(inside_now, np.inf, -np.inf))
-    lo, hi = lo.max(-1), hi.min(-1)  # the overlap interval (lo, hi), empty if lo >= hi
-    horizon = float(horizon)
-    step = float(step)
-    if step > 0.0:
-        # First sample k * step strictly inside (lo, hi); samples are 0, step, ..., <= horizon.
-        last = np.floor(horizon / step + 1e-9)
-        with np.errstate(invalid="ignore"):
-            k = np.where(lo < 0.0, 0.0, np.floor(lo / step) + 1.0)
-        t = k * step
-        hit = (lo < hi) & (t < hi) & (k <= last)
-    else:
-        t = np.maximum(lo, 0.0)
-        hit = (lo < hi) & (hi > 0.0) & (t <= horizon)
-    return np.where(hit & ok_a & ok_b, t, np.inf)
-
-
-def time_to_collision(
-    positions: np.ndarray,
-    velocities: np.ndarray,
-    yaws: np.ndarray,
-    extents: np.ndarray,
-    valid: np.ndarray,
-    horizon: float = 10.0,
-    step: float = 0.1,
-) -> np.ndarray:
-    """Pairwise constant-velocity time to collision of N agents at one instant.
-
-    See :func:`box_time_to_collision` for the model (headings held, first sample time at
-    resolution ``step`` at which the oriented boxes overlap).
-
-    Args:
-        positions: ``[N, 2]`` m.
-        velocities: ``[N, 2]`` m/s, world frame.
-        yaws: ``[N]`` rad.
-        extents: ``[N, 2]`` m, (length, width).
-        valid: ``[N]`` bool.
-        horizon: s.
-        step: s.
-
-    Returns:
-        ``[N, N]`` float, s, symmetric: 0 if already overlapping, ``inf`` if never within the
-        horizon, for invalid agents and on the diagonal.
-    """
-    positions = np.asarray(positions, dtype=np.float64)
-    velocities = np.asarray(velocities, dtype=np.float64)
-    yaws = np.asarray(yaws, dtype=np.float64)
-    extents = np.asarray(extents, dtype=np.float64)
-    ok = _present(positions, yaws, extents, valid) & np.isfinite(velocities).all(-1)
-    ttc = box_time_to_collision(
-        positions[:, None],
-        velocities[:, None],
-        yaws[:, None],
-        extents[:, None],
-        positions[None],
-        velocities[None],
-        yaws[None],
-        extents[None],
-        horizon=horizon,
-        step=step,
-    )
-    # The interval bounds of (i, j) and (j, i) are negatives of each other's; take the min so
-    # that rounding can never make the matrix asymmetric.
-    ttc = np.minimum(ttc, ttc.T)
-    ttc[~(ok[:, None] & ok[None, :])] = np.inf
-    np.fill_diagonal(ttc, np.inf)
-    return ttc
-
-
 # ---------------------------------------------------------------------- distance
 def box_distance(
     centers_a: np.ndarray,
@@ -419,7 +292,7 @@ def box_distance(
     ca, ya, ea = (np.asarray(x, dtype=np.float64) for x in (centers_a, yaws_a, extents_a))
     cb, yb, eb = (np.asarray(x, dtype=np.float64) for x in (centers_b, yaws_b, extents_b))
     ea, eb = np.broadcast_to(ea, ca.shape), np.broadcast_to(eb, cb.shape)
-    ok = _present(ca, ya, ea, None) & _present(cb, yb, eb, None)
+    ok = present(ca, ya, ea, None) & present(cb, yb, eb, None)
     out = np.full(ok.shape, np.nan)
     if ok.any():
         poly_a = shapely.polygons(box_corners(ca[ok], ya[ok], ea[ok]))

@@ -211,7 +211,7 @@ def test_commonroad_spec_and_generate(tmp_path):
     """``commonroad:DIR`` is a scenario source, and ``generate --from-commonroad`` converts a
     folder (one scene per distinct recording; a too-short one counted, not fatal)."""
     from counterscene_env.cli import main
-    from counterscene_env.scene.datagen import read_manifest
+    from counterscene_env.scene.manifest import read_manifest
     from counterscene_env.scene.reading import iter_scenes
     from counterscene_env.scene.sources import SKIPPED, SceneSource, stored_scenes
 

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from counterscene_env.scene import load_scenes
-from counterscene_env.scene.datagen import generate_dataset, read_manifest, shard_paths
+from counterscene_env.scene.datagen import generate_dataset
+from counterscene_env.scene.manifest import read_manifest, shard_paths
 from counterscene_env.scene.shards import ShardError
 
 

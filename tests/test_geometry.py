@@ -7,6 +7,7 @@ import pytest
 import shapely
 
 from counterscene_env import geometry
+from counterscene_env.ttc import time_to_collision
 
 CAR = (4.0, 2.0)  # length, width in m
 R2 = math.sqrt(2.0)
@@ -143,19 +144,19 @@ def head_on(gap_between_fronts, speed=10.0):
 
 
 def test_ttc_head_on_within_one_step_and_symmetric():
-    ttc = geometry.time_to_collision(*head_on(45.0), horizon=10.0, step=0.1)
+    ttc = time_to_collision(*head_on(45.0), horizon=10.0, step=0.1)
     true = 45.0 / 20.0  # fronts 45 m apart closing at 20 m/s: contact at 2.25 s
     assert true < ttc[0, 1] <= true + 0.1 + 1e-9
     assert ttc[0, 1] == pytest.approx(2.3)
     assert ttc[1, 0] == ttc[0, 1]
     assert np.isinf(ttc.diagonal()).all()
-    exact = geometry.time_to_collision(*head_on(45.0), step=0.0)
+    exact = time_to_collision(*head_on(45.0), step=0.0)
     assert exact[0, 1] == pytest.approx(true, abs=1e-6)
 
 
 def test_ttc_beyond_horizon_is_inf_and_overlapping_is_zero():
-    assert np.isinf(geometry.time_to_collision(*head_on(250.0), horizon=10.0)[0, 1])
-    assert geometry.time_to_collision(*head_on(-1.0))[0, 1] == 0.0
+    assert np.isinf(time_to_collision(*head_on(250.0), horizon=10.0)[0, 1])
+    assert time_to_collision(*head_on(-1.0))[0, 1] == 0.0
 
 
 def test_ttc_parallel_cars_inf_and_invalid_agent_inf():
@@ -164,12 +165,12 @@ def test_ttc_parallel_cars_inf_and_invalid_agent_inf():
     yaws = np.zeros(3)
     ext = np.array([CAR] * 3)
     valid = np.array([True, True, False])
-    ttc = geometry.time_to_collision(pos, vel, yaws, ext, valid)
+    ttc = time_to_collision(pos, vel, yaws, ext, valid)
     assert np.isinf(ttc[0, 1])
     assert np.isinf(ttc[2]).all() and np.isinf(ttc[:, 2]).all()
     valid[2] = True  # now a (finite) stopped car ahead: ego reaches it in 1.6 s
     vel[2] = 0.0
-    ttc = geometry.time_to_collision(pos, vel, yaws, ext, valid)
+    ttc = time_to_collision(pos, vel, yaws, ext, valid)
     assert ttc[0, 2] == pytest.approx(1.7)  # gap 16 m at 10 m/s: contact at 1.6 s, sampled > it
     assert np.isinf(ttc[0, 1])
 
@@ -182,7 +183,7 @@ def test_ttc_closed_form_equals_brute_force_sampling():
     yaws = rng.uniform(-np.pi, np.pi, n)
     ext = rng.uniform(1.5, 5.0, (n, 2))
     valid = np.ones(n, bool)
-    ttc = geometry.time_to_collision(pos, vel, yaws, ext, valid, horizon=5.0, step=0.1)
+    ttc = time_to_collision(pos, vel, yaws, ext, valid, horizon=5.0, step=0.1)
     taus = 0.1 * np.arange(51)
     moved = pos[:, None] + vel[:, None] * taus[None, :, None]  # [N, K, 2]
     ov = geometry.overlaps_over_time(moved, np.repeat(yaws[:, None], 51, 1), ext, np.ones((n, 51)))

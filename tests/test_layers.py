@@ -18,6 +18,7 @@ LAYERS = {
     "config": 0,
     "geometry": 0,
     "dynamics": 0,
+    "ttc": 0,  # time to collision on geometry's separating axes
     "scene": 1,
     "metrics": 1,
     "adversary.tracks": 2,

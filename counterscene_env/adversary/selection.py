@@ -45,7 +45,8 @@ from counterscene_env.adversary.tracks import (
     travel_direction,
 )
 from counterscene_env.config import Selector
-from counterscene_env.geometry import arc_length, box_time_to_collision
+from counterscene_env.geometry import arc_length
+from counterscene_env.ttc import box_time_to_collision
 
 __all__ = [
     "FALLBACK_WEIGHT",

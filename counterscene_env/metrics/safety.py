@@ -18,6 +18,7 @@ from counterscene_env.metrics.common import (
 )
 from counterscene_env.metrics.realism import logged_rollout
 from counterscene_env.scene.core import Scene
+from counterscene_env.ttc import box_time_to_collision
 
 
 def ego_collision_steps(scene: Scene) -> np.ndarray:
@@ -264,13 +265,13 @@ def min_ttc_ego(scene: Scene, horizon: float = 10.0, step: float = 0.1) -> float
     """Smallest constant-velocity TTC, s, of the ego against any other agent over the rollout.
 
     At every rollout step where the ego is valid, each other valid agent is projected at its
-    current velocity with its heading held (:func:`geometry.box_time_to_collision`, horizon
+    current velocity with its heading held (:func:`~counterscene_env.ttc.box_time_to_collision`, horizon
     ``horizon`` s at resolution ``step`` s). 0 while overlapping; ``inf`` if never.
     """
     sl, e = rollout_slice(scene), scene.ego_index
     pos, yaw, ok = scene.positions[:, sl], scene.yaws[:, sl], scene.valid[:, sl]
     vel = scene.velocities[:, sl]
-    ttc = geometry.box_time_to_collision(
+    ttc = box_time_to_collision(
         pos[e][None],
         vel[e][None],
         yaw[e][None],

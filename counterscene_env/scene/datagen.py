@@ -20,8 +20,6 @@ skips the shards it lists, so an interrupted run loses at most the shards in fli
 from __future__ import annotations
 
 import hashlib
-import importlib.metadata
-import json
 import os
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -33,11 +31,14 @@ from counterscene_env.scene.blocks import (
     convert_scenarionet_block,
     generate_block,
 )
-from counterscene_env.scene.shards import ShardError, load_scenes, save_scenes
-
-MANIFEST = "manifest.json"
-DATASET_FORMAT = "counterscene-dataset"
-DATASET_VERSION = 1
+from counterscene_env.scene.manifest import (
+    MANIFEST,
+    open_manifest,
+    refuse_shrinking,
+    reusable_blocks,
+    write_manifest,
+)
+from counterscene_env.scene.shards import load_scenes, save_scenes
 
 
 def generate_dataset(
@@ -147,31 +148,6 @@ def _convert_files(
     return _build(Path(out), params, None, block_args, len(blocks), workers, progress)
 
 
-def read_manifest(directory: str | os.PathLike) -> dict:
-    """The manifest of a dataset directory, checked for format and version."""
-    path = Path(directory) / MANIFEST
-    if not path.is_file():
-        raise ShardError(f"{directory}: no {MANIFEST}; not a CounterScene dataset directory")
-    try:
-        manifest = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ShardError(f"{path}: corrupt manifest ({exc})") from exc
-    if manifest.get("format") != DATASET_FORMAT:
-        raise ShardError(f"{path}: not a CounterScene dataset manifest")
-    if int(manifest.get("version", -1)) > DATASET_VERSION:
-        raise ShardError(
-            f"{path}: dataset format version {manifest['version']} is newer than this "
-            f"counterscene_env reads ({DATASET_VERSION}); upgrade counterscene-env"
-        )
-    return manifest
-
-
-def shard_paths(directory: str | os.PathLike) -> list[Path]:
-    """The shard files of a dataset directory, in order."""
-    manifest = read_manifest(directory)
-    return [Path(directory) / s["file"] for s in manifest["shards"] if s["scenes"] > 0]
-
-
 # ---------------------------------------------------------------------- the build loop
 def _build(
     out: Path,
@@ -186,9 +162,9 @@ def _build(
     from tqdm.auto import tqdm
 
     out.mkdir(parents=True, exist_ok=True)
-    manifest = _open_manifest(out, params)
-    _refuse_shrinking(out, manifest, target)
-    done = _reusable_blocks(out, manifest, target)
+    manifest = open_manifest(out, params)
+    refuse_shrinking(out, manifest, target)
+    done = reusable_blocks(out, manifest, target)
     bar = tqdm(
         total=target, disable=not progress, unit="scene", desc=params.get("scenario", "convert")
     )
@@ -205,32 +181,7 @@ def _build(
         bar.close()
     if target is not None:
         _truncate(out, manifest, done, target)
-    return _write_manifest(out, manifest, done, target)
-
-
-def _refuse_shrinking(out: Path, manifest: dict, target: int | None) -> None:
-    """Raise ValueError if ``out`` already holds more scenes than the ``target`` asked for."""
-    held = manifest.get("scenes_requested")
-    if target is not None and held is not None and held > target:
-        # Shrinking would delete scenes someone generated; never do that silently.
-        raise ValueError(
-            f"{out} already holds a dataset of {held} scenes; asked for {target}. "
-            "Use another --out, or ask for at least as many scenes."
-        )
-
-
-def _reusable_blocks(out: Path, manifest: dict, target: int | None) -> dict[int, dict]:
-    """The manifest's block entries a rerun keeps (shard on disk, complete enough), by block."""
-    done: dict[int, dict] = {}
-    for entry in sorted(manifest["shards"], key=lambda e: e["block"]):
-        if entry["scenes"] and not (out / entry["file"]).is_file():
-            continue
-        # A block that stopped early is complete only if the target needs nothing more from it.
-        covered = sum(e["scenes"] for e in done.values()) + entry["scenes"]
-        if entry.get("truncated") and (target is None or covered < target):
-            continue
-        done[entry["block"]] = entry
-    return done
+    return write_manifest(out, manifest, done, target)
 
 
 class _BlockLoop:
@@ -332,7 +283,7 @@ class _BlockLoop:
             self.done[entry["block"]] = entry
             self.empty_streak = self.empty_streak + 1 if entry["scenes"] == 0 else 0
             bar.update(entry["scenes"])
-            _write_manifest(self.out, self.manifest, self.done, self.target)
+            write_manifest(self.out, self.manifest, self.done, self.target)
         if self.target is not None and self.empty_streak >= 3:
             raise RuntimeError(
                 f"{self.out}: three blocks in a row produced no scene; see {MANIFEST}"
@@ -368,44 +319,8 @@ def _truncate(out: Path, manifest: dict, done: dict[int, dict], target: int) -> 
         total += keep
     if not (cut or drop):
         return
-    _write_manifest(out, manifest, done, target)
+    write_manifest(out, manifest, done, target)
     for path, keep in cut:
         save_scenes(load_scenes(path)[:keep], path)
     for name in drop:
         (out / name).unlink(missing_ok=True)
-
-
-#: Dataset parameters added after datasets were first written, with the value those had.
-_DEFAULTS_BEFORE = {"yielding": "highway-env"}
-
-
-def _open_manifest(out: Path, params: dict) -> dict:
-    """The manifest in ``out`` (checked against ``params``), or a fresh one for a new dataset."""
-    if (out / MANIFEST).is_file():
-        manifest = read_manifest(out)
-        # A key the manifest predates had its default then (datasets made before it resume).
-        was = {**_DEFAULTS_BEFORE, **manifest}
-        mismatch = {k: (was.get(k), v) for k, v in params.items() if was.get(k) != v}
-        if mismatch:
-            detail = ", ".join(f"{k}: {a!r} there, {b!r} asked" for k, (a, b) in mismatch.items())
-            raise ValueError(f"{out} holds a different dataset ({detail}); use another --out")
-        return manifest
-    return {
-        "format": DATASET_FORMAT,
-        "version": DATASET_VERSION,
-        **params,
-        "counterscene_version": importlib.metadata.version("counterscene-env"),
-        "scenes": 0,
-        "shards": [],
-    }
-
-
-def _write_manifest(out: Path, manifest: dict, done: dict[int, dict], target: int | None) -> dict:
-    manifest["shards"] = [done[k] for k in sorted(done)]
-    manifest["scenes"] = sum(s["scenes"] for s in manifest["shards"])
-    manifest["scenes_requested"] = target
-    manifest["rejected"] = sum(len(s["rejected"]) for s in manifest["shards"])
-    tmp = out / f".{MANIFEST}.tmp"
-    tmp.write_text(json.dumps(manifest, indent=1))
-    os.replace(tmp, out / MANIFEST)
-    return manifest

@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from counterscene_env.scene.core import Scene, SceneTooShort
-from counterscene_env.scene.datagen import MANIFEST, read_manifest, shard_paths
+from counterscene_env.scene.manifest import MANIFEST, read_manifest, shard_paths
 from counterscene_env.scene.shards import load_scenes
 
 __all__ = ["iter_scenes"]

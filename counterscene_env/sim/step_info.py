@@ -16,6 +16,7 @@ import numpy as np
 from counterscene_env import geometry
 from counterscene_env.metrics import HARD_BRAKE_THRESHOLD
 from counterscene_env.sim.state import Episode
+from counterscene_env.ttc import box_time_to_collision
 
 #: Horizon of the per-step TTC, s.
 TTC_HORIZON = 5.0
@@ -40,7 +41,7 @@ def ego_step_info(ep: Episode, k: int, replanned: bool) -> dict:
     hits = geometry.boxes_overlap(pos[e], yaw[e], ext[e], pos, yaw, ext) & ok
     hit_rows = np.flatnonzero(hits)
     vel = ep.speeds[:, t, None] * np.stack([np.cos(yaw), np.sin(yaw)], -1)
-    ttc = geometry.box_time_to_collision(
+    ttc = box_time_to_collision(
         pos[e], vel[e], yaw[e], ext[e], pos, vel, yaw, ext, horizon=TTC_HORIZON
     )
     ttc = np.where(ok, ttc, np.inf)

@@ -29,7 +29,7 @@ from torch.utils.data import Dataset
 
 from counterscene_env.config import WindowCentres
 from counterscene_env.scene.core import Scene
-from counterscene_env.scene.datagen import MANIFEST, shard_paths
+from counterscene_env.scene.manifest import MANIFEST, shard_paths
 from counterscene_env.scene.shards import load_scenes
 from counterscene_env.world_model.window import WindowConfig, lane_segments, make_window
 
