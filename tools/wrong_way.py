@@ -17,7 +17,10 @@ per episode whether it had one (``per_episode``, to pair two runs on the same sc
     python tools/wrong_way.py data/eval-intersection [--episodes 50] [--set KEY=VALUE ...]
 
 ``--set`` takes closed-loop keys (JSON values), e.g. ``--set lane_steering=0 traffic_yields=false
-road_keeping=false`` for the network alone.
+road_keeping=false`` for the network alone. ``--withhold plan`` runs a model with
+``plan_features="self"`` with its self-conditioning plan withheld (every denoising step is
+told there is none); ``--withhold priority`` sets every lane's right of way to 0 for a model
+with ``lane_priority``: whether the network's closed loop depends on those inputs.
 """
 
 from __future__ import annotations
@@ -36,7 +39,9 @@ from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import loaded_scenes
 from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.stress import run_batch
+from counterscene_env.world_model import features
 from counterscene_env.world_model.checkpoint import load_model
+from counterscene_env.world_model.model import WorldModel
 
 MOVING = 1.0  # m/s
 OWN_WAY = np.pi / 4  # rad: a lane within this of the course goes the car's way
@@ -143,15 +148,41 @@ def count(scenes: list[Scene]) -> dict:
     }
 
 
+def withhold(model: WorldModel, inputs: list[str]) -> WorldModel:
+    """``model`` with the named inputs withheld at sampling (module docstring, ``--withhold``)."""
+    if "plan" in inputs:
+        if model.config.plan_features != "self":
+            raise SystemExit("--withhold plan needs a model with plan_features='self'")
+        denoise = model.denoise
+
+        def no_plan(noisy, timesteps, ctx, state, valid, previous=None, given=None):
+            return denoise(noisy, timesteps, ctx, state, valid, None, None)
+
+        model.denoise = no_plan
+    if "priority" in inputs:
+        if not model.config.lane_priority:
+            raise SystemExit("--withhold priority needs a model with lane_priority")
+        lane_features = features.lane_features
+
+        def no_priority(batch, priority=False):
+            zero = {"map_priority": batch["map_priority"].new_zeros(batch["map_priority"].shape)}
+            return lane_features({**batch, **zero}, priority)
+
+        features.lane_features = no_priority  # this process only: a diagnosis run
+    return model
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("data", help="stored scenes (a dataset directory or shard)")
     ap.add_argument("--episodes", type=int, default=50)
     ap.add_argument("--model", default="default")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--withhold", nargs="*", default=[], choices=["plan", "priority"])
     args = ap.parse_args()
     settings = parse_overrides(args.set)
-    loop = ClosedLoop(load_model(args.model), SimConfig(**{"guidance": "none", **settings}))
+    model = withhold(load_model(args.model), args.withhold)
+    loop = ClosedLoop(model, SimConfig(**{"guidance": "none", **settings}))
     scenes = loaded_scenes(args.data)[: args.episodes]
     rollouts, logs, kinds, flags = [], [], [], []
     for i, scene in enumerate(scenes):
@@ -180,6 +211,7 @@ def main() -> None:
         json.dumps(
             {
                 "settings": settings,
+                "withheld": args.withhold,
                 "closed_loop": count(rollouts),
                 "log": count(logs),
                 "new_non_ego_collisions": collisions,
