@@ -19,8 +19,9 @@ per episode whether it had one (``per_episode``, to pair two runs on the same sc
 ``--set`` takes closed-loop keys (JSON values), e.g. ``--set lane_steering=0 traffic_yields=false
 road_keeping=false`` for the network alone. ``--withhold plan`` runs a model with
 ``plan_features="self"`` with its self-conditioning plan withheld (every denoising step is
-told there is none); ``--withhold priority`` sets every lane's right of way to 0 for a model
-with ``lane_priority``: whether the network's closed loop depends on those inputs.
+told there is none); ``--withhold priority`` sets every lane's right of way to 0 (the lowest;
+such a model has no value for "unknown") for a model with ``lane_priority``: whether the
+network's closed loop depends on those inputs.
 """
 
 from __future__ import annotations
