@@ -36,7 +36,8 @@ def box_time_to_collision(
 
     Both boxes move at constant velocity with their headings held. The result is the first
     sample time ``k * step`` in ``[0, horizon]`` at which the boxes overlap (as
-    :func:`~counterscene_env.geometry.boxes_overlap`), so the true first-contact time lies in ``(ttc - step, ttc]``.
+    :func:`~counterscene_env.geometry.boxes_overlap`), so the true first-contact time lies in
+    ``(ttc - step, ttc]``.
 
     Computed in closed form instead of by testing every sample: with headings held, the SAT
     radii are constant and the offset projections are affine in time, ``o_e(tau) = d.e +

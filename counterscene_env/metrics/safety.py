@@ -265,8 +265,9 @@ def min_ttc_ego(scene: Scene, horizon: float = 10.0, step: float = 0.1) -> float
     """Smallest constant-velocity TTC, s, of the ego against any other agent over the rollout.
 
     At every rollout step where the ego is valid, each other valid agent is projected at its
-    current velocity with its heading held (:func:`~counterscene_env.ttc.box_time_to_collision`, horizon
-    ``horizon`` s at resolution ``step`` s). 0 while overlapping; ``inf`` if never.
+    current velocity with its heading held
+    (:func:`~counterscene_env.ttc.box_time_to_collision`, horizon ``horizon`` s at resolution
+    ``step`` s). 0 while overlapping; ``inf`` if never.
     """
     sl, e = rollout_slice(scene), scene.ego_index
     pos, yaw, ok = scene.positions[:, sl], scene.yaws[:, sl], scene.valid[:, sl]
