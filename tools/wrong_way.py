@@ -30,6 +30,7 @@ import argparse
 import json
 
 import numpy as np
+import torch
 
 from counterscene_env.cli.common import parse_overrides
 from counterscene_env.geometry import wrap_angle
@@ -166,8 +167,8 @@ def withhold(model: WorldModel, inputs: list[str]) -> WorldModel:
         lane_features = features.lane_features
 
         def no_priority(batch, priority=False):
-            zero = {"map_priority": batch["map_priority"].new_zeros(batch["map_priority"].shape)}
-            return lane_features({**batch, **zero}, priority)
+            zero = torch.zeros_like(batch["map_priority"])
+            return lane_features({**batch, "map_priority": zero}, priority)
 
         features.lane_features = no_priority  # this process only: a diagnosis run
     return model
