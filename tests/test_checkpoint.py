@@ -26,7 +26,8 @@ from counterscene_env.world_model.checkpoint import (
 )
 from counterscene_env.world_model.config import preset
 from counterscene_env.world_model.dataset import SceneWindowDataset
-from counterscene_env.world_model.model import Normalization, WorldModel
+from counterscene_env.world_model.model import WorldModel
+from counterscene_env.world_model.records import Normalization
 
 TINY = preset("default").replace(
     d_model=32, num_heads=2, num_blocks=1, num_agents=4, num_lanes=8, sampling_steps=3

@@ -14,7 +14,8 @@ from counterscene_env.world_model.dataset import SceneWindowDataset
 from counterscene_env.world_model.features import local_map
 from counterscene_env.world_model.loss import training_loss
 from counterscene_env.world_model.map_guidance import off_lane_loss
-from counterscene_env.world_model.model import Normalization, WorldModel
+from counterscene_env.world_model.model import WorldModel
+from counterscene_env.world_model.records import Normalization
 from counterscene_env.world_model.train import action_statistics
 
 TINY = preset("default").replace(

@@ -23,7 +23,7 @@ import torch
 
 from counterscene_env.scene.sources import stored_scenes
 from counterscene_env.world_model.checkpoint import load_model
-from counterscene_env.world_model.evaluate import window_batches, window_jobs
+from counterscene_env.world_model.eval_windows import window_batches, window_jobs
 
 MEET = 2.0  # m: two paths cross where they come this close; a sample reaches the point so near
 TIE = 1.0  # s: arrivals this close are a tie (at today's speeds) or a near miss (in a sample)

@@ -52,7 +52,8 @@ from torch.utils.data import default_collate
 from counterscene_env.scene.reading import iter_scenes
 from counterscene_env.world_model import load_model
 from counterscene_env.world_model.dataset import SceneWindowDataset
-from counterscene_env.world_model.evaluate import constant_velocity, start_steps
+from counterscene_env.world_model.eval_windows import start_steps
+from counterscene_env.world_model.evaluate import constant_velocity
 from counterscene_env.world_model.map_guidance import lane_excess
 from counterscene_env.world_model.overlap import new_overlaps
 from counterscene_env.world_model.parked import KERB_OFFSET

@@ -30,7 +30,8 @@ from counterscene_env.sim.config import SimConfig
 from counterscene_env.sim.realism import plan_cost
 from counterscene_env.sim.state import Episode, ModelWindow
 from counterscene_env.sim.traffic import IDMLaneFollower
-from counterscene_env.world_model.model import GuidanceHook, Prediction, WorldModel
+from counterscene_env.world_model.model import WorldModel
+from counterscene_env.world_model.records import GuidanceHook, Prediction
 from counterscene_env.world_model.window import agent_count, collate, make_window
 
 

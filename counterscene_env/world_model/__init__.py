@@ -13,7 +13,8 @@ from counterscene_env.world_model.checkpoint import (
     save_model,
 )
 from counterscene_env.world_model.config import PRESETS, ModelConfig, preset
-from counterscene_env.world_model.model import Normalization, Prediction, WorldModel
+from counterscene_env.world_model.model import WorldModel
+from counterscene_env.world_model.records import Normalization, Prediction
 from counterscene_env.world_model.scheduler import CosineScheduler, SchedulerOutput
 
 __all__ = [

@@ -24,7 +24,8 @@ from typing import Any
 import torch
 
 from counterscene_env.world_model.config import ModelConfig
-from counterscene_env.world_model.model import Normalization, WorldModel
+from counterscene_env.world_model.model import WorldModel
+from counterscene_env.world_model.records import Normalization
 
 FORMAT = "counterscene-world-model"
 VERSION = 1

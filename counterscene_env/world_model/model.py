@@ -1,5 +1,5 @@
 """The world model: batched sampling (input features: ``features.py``; the training loss:
-``loss.py``).
+``loss.py``; the records it hands out: ``records.py``).
 
 A *batch* is a dict of tensors in the layout of
 :class:`counterscene_env.world_model.dataset.SceneWindowDataset` (leading batch axis ``B``): ``history
@@ -18,8 +18,7 @@ trajectories carry courses in their yaw channel; the body heading is an input on
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 
 import torch
 from torch import nn
@@ -35,40 +34,9 @@ from counterscene_env.world_model.cig import edge_features
 from counterscene_env.world_model.config import ModelConfig
 from counterscene_env.world_model.denoiser import Denoiser
 from counterscene_env.world_model.lane_steering import steer_onto_lanes
+from counterscene_env.world_model.records import GuidanceHook, Normalization, Prediction
 from counterscene_env.world_model.scheduler import CosineScheduler
 from counterscene_env.world_model.window import WindowConfig
-
-#: ``guidance(mean, sigma, t, x0) -> mean``: edits the posterior mean ``[B*S, K, Ta, 2]``
-#: (normalised actions) at one denoising step; see :meth:`CosineScheduler.step`.
-GuidanceHook = Callable[[torch.Tensor, float, int, torch.Tensor], torch.Tensor]
-
-
-@dataclass
-class Normalization:
-    """Per-channel statistics of the actions (acceleration [m/s^2], yaw rate [rad/s])."""
-
-    action_mean: tuple[float, float] = (0.0, 0.0)
-    action_std: tuple[float, float] = (1.0, 0.1)
-
-    def to_dict(self) -> dict[str, list[float]]:
-        return {"action_mean": list(self.action_mean), "action_std": list(self.action_std)}
-
-
-@dataclass
-class Prediction:
-    """Output of :meth:`WorldModel.sample` (S samples per scene).
-
-    Attributes:
-        actions: ``[B, S, K, F, 2]`` acceleration [m/s^2], yaw rate [rad/s] per future step.
-        trajectory: ``[B, S, K, F, 4]`` x [m], y [m], yaw [rad], speed [m/s], ego frame.
-        normalized: ``[B, S, K, Ta, 2]`` the sampled action tokens, normalised.
-        valid: ``[B, K]`` agents the prediction is meaningful for.
-    """
-
-    actions: torch.Tensor
-    trajectory: torch.Tensor
-    normalized: torch.Tensor
-    valid: torch.Tensor
 
 
 class WorldModel(nn.Module):

@@ -30,8 +30,9 @@ from counterscene_env.world_model.checkpoint import save_model
 from counterscene_env.world_model.config import preset as get_preset
 from counterscene_env.world_model.dataset import SceneWindowDataset, load_sources
 from counterscene_env.world_model.loss import training_loss
-from counterscene_env.world_model.model import Normalization, WorldModel
+from counterscene_env.world_model.model import WorldModel
 from counterscene_env.world_model.parked import add_parked_cars
+from counterscene_env.world_model.records import Normalization
 from counterscene_env.world_model.train_config import (
     UNSIZED_FIELDS,
     TrainConfig,
