@@ -20,12 +20,8 @@ import torch
 
 from counterscene_env.scene.sources import stored_scenes
 from counterscene_env.world_model.checkpoint import load_model
-from counterscene_env.world_model.evaluate import (
-    PARKED_SPEED,
-    STILL_DISPLACEMENT,
-    window_batches,
-    window_jobs,
-)
+from counterscene_env.world_model.eval_windows import window_batches, window_jobs
+from counterscene_env.world_model.evaluate import PARKED_SPEED, STILL_DISPLACEMENT
 from counterscene_env.world_model.map_guidance import lane_excess
 
 HORIZON = 30  # steps (3 s at 10 Hz)
