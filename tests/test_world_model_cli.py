@@ -509,9 +509,11 @@ def test_full_bench_json_has_every_figure(capsys):
 
 @pytest.mark.slow
 def test_weighted_agent_centred_mixture_trains_records_and_resumes(dataset, tmp_path):
-    """Two sources, the second agent-centred, mixed 1:3 per batch: the record says so, and a
-    resumed run equals an uninterrupted one (the weighted draw is seeded by the step)."""
+    """Two sources, the second agent-centred with its tracks smoothed, mixed 1:3 per batch:
+    the record says so, and a resumed run equals an uninterrupted one (the weighted draw is
+    seeded by the step)."""
     extra = ["--agent-centred", str(dataset), "--data-weights", "1", "3"]
+    extra += ["--smooth-tracks", str(dataset), "--smooth-sigma", "0.3"]
 
     def run(out, steps):
         argv = ["train", "--data", str(dataset.parent / "ego"), str(dataset), "--out", str(out)]
@@ -533,6 +535,7 @@ def test_weighted_agent_centred_mixture_trains_records_and_resumes(dataset, tmp_
     ego_windows, agent_windows = info["train_windows_per_source"]
     assert agent_windows > ego_windows > 0  # every merge vehicle centres windows, not the ego only
     assert info["data_weights"] == [1.0, 3.0] and info["agent_centred"] == [str(dataset)]
+    assert info["smooth_tracks"] == [str(dataset)] and info["smooth_sigma"] == 0.3
 
 
 def test_train_mixture_settings_are_checked(dataset, tmp_path, capsys):
@@ -543,4 +546,8 @@ def test_train_mixture_settings_are_checked(dataset, tmp_path, capsys):
     assert "data_weights must be >= 0" in capsys.readouterr().err
     assert main([*base, "--agent-centred", str(tmp_path)]) == 1
     assert "agent_centred names datasets not in data" in capsys.readouterr().err
+    assert main([*base, "--smooth-tracks", str(tmp_path)]) == 1
+    assert "smooth_tracks names datasets not in data" in capsys.readouterr().err
+    assert main([*base, "--smooth-tracks", str(dataset), "--smooth-sigma", "0"]) == 1
+    assert "smooth_sigma" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()

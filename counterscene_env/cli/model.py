@@ -103,6 +103,22 @@ def add_train(sub) -> None:
         help="share of each --data dataset in every batch, one value per dataset (default: "
         "in proportion to its windows)",
     )
+    tr.add_argument(
+        "--smooth-tracks",
+        nargs="+",
+        default=[],
+        metavar="DIR",
+        help="those --data datasets whose tracks are low-pass filtered before training "
+        "(video-tracked recordings such as NGSIM, whose speeds carry measurement noise; "
+        "docs/world_model.md)",
+    )
+    tr.add_argument(
+        "--smooth-sigma",
+        type=float,
+        default=0.5,
+        metavar="SECONDS",
+        help="the --smooth-tracks filter's standard deviation (default 0.5 s)",
+    )
     add_quiet_flag(tr)
     tr.set_defaults(func=_cmd_train)
 
@@ -137,6 +153,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         off_lane_by_course=args.off_lane_by_course,
         min_future_steps=args.min_future,
         agent_centred=tuple(args.agent_centred),
+        smooth_tracks=tuple(args.smooth_tracks),
+        smooth_sigma=args.smooth_sigma,
         data_weights=None if args.data_weights is None else tuple(args.data_weights),
         parked_cars=args.parked_cars,
     )

@@ -26,6 +26,7 @@ from typing import Any
 import torch
 from torch.utils.data import default_collate
 
+from counterscene_env.scene.smoothing import smooth_tracks
 from counterscene_env.world_model.checkpoint import save_model
 from counterscene_env.world_model.config import preset as get_preset
 from counterscene_env.world_model.dataset import SceneWindowDataset, load_sources
@@ -135,8 +136,11 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     probe = WorldModel(model_cfg)
     train_parts, val_parts, sources, sizes, per_source = [], [], [], [], []
     for j, d in enumerate(cfg.data):
+        scenes = load_sources(d)
+        if d in cfg.smooth_tracks:
+            scenes = [smooth_tracks(s, cfg.smooth_sigma) for s in scenes]
         ds = SceneWindowDataset(
-            load_sources(d),
+            scenes,
             probe.window_config(cfg.window_stride),
             min_future_steps=cfg.min_future_steps,
             centres="agents" if d in cfg.agent_centred else "ego",
@@ -269,6 +273,10 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     ):
         if getattr(cfg, key):
             info[key] = getattr(cfg, key)
+    if cfg.smooth_tracks:
+        info.update(
+            smooth_tracks=[str(d) for d in cfg.smooth_tracks], smooth_sigma=cfg.smooth_sigma
+        )
     if cfg.init is not None:  # provenance of a fine-tune: where it started
         info.update(init=cfg.init, init_training=dict(start.training_info))
     bar = None

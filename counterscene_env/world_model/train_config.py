@@ -58,6 +58,10 @@ class TrainConfig:
             shuffled pass per epoch), so a source's share is its share of the windows.
         parked_cars: share of the training windows that get parked cars beside their lanes
             (``world_model/parked.py``; seeded by the step); 0: none.
+        smooth_tracks: those of ``data`` whose tracks are low-pass filtered before their
+            windows are cut (``scene/smoothing.py``: video-tracked recordings such as NGSIM,
+            whose speeds carry measurement noise); none by default.
+        smooth_sigma: the filter's standard deviation [s] for ``smooth_tracks``.
     """
 
     data: tuple[str, ...]
@@ -85,12 +89,15 @@ class TrainConfig:
     agent_centred: tuple[str, ...] = ()
     data_weights: tuple[float, ...] | None = None
     parked_cars: float = bounded(0.0, ge=0, le=1)
+    smooth_tracks: tuple[str, ...] = ()
+    smooth_sigma: float = bounded(0.5, gt=0)
 
     def __post_init__(self) -> None:
         check_fields(self)  # every number by type and range, naming the field
-        unknown = [d for d in self.agent_centred if d not in self.data]
-        if unknown:
-            raise ValueError(f"agent_centred names datasets not in data: {unknown}")
+        for key in ("agent_centred", "smooth_tracks"):
+            unknown = [d for d in getattr(self, key) if d not in self.data]
+            if unknown:
+                raise ValueError(f"{key} names datasets not in data: {unknown}")
         if self.data_weights is not None:
             w = self.data_weights
             if len(w) != len(self.data):
@@ -149,6 +156,10 @@ def plain_settings(cfg: TrainConfig) -> dict[str, Any]:
         d.pop("off_lane_by_course")  # and before the off-lane term by course
     if d["parked_cars"] == 0:
         d.pop("parked_cars")  # and before parked cars
+    d["smooth_tracks"] = [str(x) for x in d["smooth_tracks"]]
+    if not d["smooth_tracks"]:
+        d.pop("smooth_tracks")  # and before smoothed tracks
+        d.pop("smooth_sigma")
     d["steps"] = None  # a longer --steps continues the same run
     d["lr_decay_start"] = None  # and so may the tail of the schedule
     return d
