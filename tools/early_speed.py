@@ -1,0 +1,141 @@
+"""Where in the first 3 s a world model loses to constant velocity, and what its first speed
+changes cost (docs/world_model.md, "Tracking noise in the training data").
+
+Moving agents (3 m/s or more now) with their whole 3 s logged, every second of each log
+(as ``counterscene evaluate-model --every 1``), one sample of 6 per sampling call:
+
+- displacement error by horizon, one sample, the mean of the 6 and constant velocity, split
+  along and across the agent's course;
+- the first action token's acceleration (0-0.4 s) against the log's: spread, correlation;
+- ADE over 0-3 s with the sample's accelerations over its first ``--tokens`` tokens scaled by
+  each ``--scale`` and rolled out again (1: the sample re-rolled from its token means, the
+  reference; a diagnosis, not a sampler setting: how much of the
+  error is the sample's early speed changes):
+
+    python tools/early_speed.py scenarionet:path/to/nuscenes_mini_scenarionet [--model DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import torch
+
+from counterscene_env.dynamics import actions_from_states, unicycle_rollout
+from counterscene_env.scene.sources import stored_scenes
+from counterscene_env.world_model.checkpoint import load_model
+from counterscene_env.world_model.eval_windows import window_batches, window_jobs
+from counterscene_env.world_model.evaluate import MOVING_SPEED, constant_velocity
+
+HORIZON = 30  # steps (3 s at 10 Hz)
+SAMPLES = 6
+REPORTED = (1, 2, 4, 9, 19, 29)  # steps: 0.2, 0.3, 0.5, 1, 2, 3 s
+
+
+def frame_errors(d: np.ndarray, course: float) -> tuple[np.ndarray, np.ndarray]:
+    """Along- and across-course parts of displacement errors ``d [H, 2]`` m."""
+    along = np.array([np.cos(course), np.sin(course)])
+    return d @ along, d @ np.array([-along[1], along[0]])
+
+
+def scaled_rollouts(model, state, acts, tokens: int, scales) -> dict[float, torch.Tensor]:
+    """The first sample's token actions ``acts [B, S, K, Ta, 2]`` with the accelerations of the
+    first ``tokens`` tokens times each scale, rolled out from ``state``: ``[B, K, F, 4]``."""
+    c = model.config
+    out = {}
+    for f in scales:
+        a = acts[:, 0].clone()
+        a[..., :tokens, 0] *= f
+        steps = a.repeat_interleave(c.action_stride, -2)
+        out[f] = unicycle_rollout(state, steps, c.dt, True, c.yaw_gain, c.lateral_limit)
+    return out
+
+
+def measure(model, scenes, seed: int, tokens: int, scales) -> dict[str, list]:
+    """Per moving agent-window: error by step (one sample, mean of the samples, constant
+    velocity; along and across), first-token accelerations, and the scaled rollouts' ADE."""
+    c = model.config
+    s = c.action_stride
+    jobs = window_jobs(scenes, c.history_steps, 10, HORIZON)
+    g = torch.Generator().manual_seed(seed)
+    keys = ("one", "mean", "cv", "al", "ac", "cal", "cac", "first", "logged")
+    rows: dict = {k: [] for k in keys} | {f: [] for f in scales}
+    for _, batch in window_batches(model, scenes, jobs):
+        with torch.no_grad():
+            pred = model.sample(batch, SAMPLES, g)
+            state = model.current_state(batch)
+            target, target_ok = model.target_actions(batch)
+        traj = pred.trajectory  # [B, S, K, F, 4]
+        now = state[:, None, :, None].expand(-1, SAMPLES, -1, -1, -1)
+        acts = actions_from_states(torch.cat([now, traj[..., s - 1 :: s, :]], -2), c.dt * s)
+        redone = scaled_rollouts(model, state, acts, tokens, scales)
+        future = batch["future"][..., :HORIZON, :2].numpy()
+        ok = batch["future_valid"][..., :HORIZON].numpy()
+        st = state.numpy()
+        cv = constant_velocity(st, HORIZON, c.dt)
+        xy = traj[..., :HORIZON, :2].numpy()
+        moving = pred.valid.numpy() & ok.all(-1) & (np.abs(st[..., 3]) >= MOVING_SPEED)
+        for b, k in zip(*np.nonzero(moving), strict=True):
+            truth = future[b, k]
+            d_one, d_cv = xy[b, 0, k] - truth, cv[b, k] - truth
+            rows["one"].append(np.linalg.norm(d_one, axis=-1))
+            rows["mean"].append(np.linalg.norm(xy[b, :, k].mean(0) - truth, axis=-1))
+            rows["cv"].append(np.linalg.norm(d_cv, axis=-1))
+            for key, d in (("a", d_one), ("ca", d_cv)):
+                al, ac = frame_errors(d, st[b, k, 2])
+                rows[f"{key}l"].append(al)
+                rows[f"{key}c"].append(ac)
+            if target_ok[b, k, 0]:
+                rows["first"].append(acts[b, :, k, 0, 0].numpy())
+                rows["logged"].append(float(target[b, k, 0, 0]))
+            for f in scales:
+                err = np.linalg.norm(redone[f][b, k, :HORIZON, :2].numpy() - truth, axis=-1)
+                rows[f].append(err.mean())
+    return rows
+
+
+def report(rows: dict, tokens: int, scales) -> None:
+    r = {k: np.array(rows[k]) for k in ("one", "mean", "cv", "al", "ac", "cal", "cac")}
+    rms = lambda x: float(np.sqrt((x**2).mean()))  # noqa: E731
+    print(f"{len(r['one'])} moving agent-windows with 3 s logged")
+    print("horizon  one sample  mean of 6  const. vel.  ratio   along rms (cv)   across rms (cv)")
+    for t in REPORTED:
+        print(
+            f"{(t + 1) / 10:5.1f} s  {r['one'][:, t].mean():8.3f} m {r['mean'][:, t].mean():8.3f} m"
+            f" {r['cv'][:, t].mean():9.3f} m  {r['one'][:, t].mean() / r['cv'][:, t].mean():5.2f}x"
+            f"  {rms(r['al'][:, t]):6.3f} ({rms(r['cal'][:, t]):.3f})"
+            f"   {rms(r['ac'][:, t]):6.3f} ({rms(r['cac'][:, t]):.3f})"
+        )
+    fa, la = np.array(rows["first"]), np.array(rows["logged"])
+    print(
+        f"first token's acceleration, m/s^2 (n={len(la)}): log std {la.std():.2f}; one sample "
+        f"std {fa[:, 0].std():.2f}, correlation with the log {np.corrcoef(fa[:, 0], la)[0, 1]:.2f};"
+        f" spread of the {SAMPLES} samples about their mean {fa.std(1).mean():.2f}"
+    )
+    print(
+        f"  rms error: one sample {rms(fa[:, 0] - la):.2f}, mean of {SAMPLES} "
+        f"{rms(fa.mean(1) - la):.2f}, zero (constant speed) {rms(la):.2f}"
+    )
+    ade_one, ade_cv = r["one"].mean(), r["cv"].mean()
+    print(f"ADE 0-3 s: one sample {ade_one:.3f} m ({ade_one / ade_cv:.3f}x constant velocity)")
+    for f in scales:
+        v = float(np.mean(rows[f]))
+        print(f"  its first {tokens} tokens' accelerations x{f:g}: {v:.3f} m ({v / ade_cv:.3f}x)")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("source", help="scenario spec: scenarionet:DIR, commonroad:DIR or a dataset")
+    ap.add_argument("--model", default=None, help="model directory (default: shipped)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--tokens", type=int, default=3, help="early tokens scaled (default 3)")
+    ap.add_argument("--scale", type=float, nargs="+", default=[1.0, 0.5, 0.0])
+    args = ap.parse_args()
+    model = load_model(args.model).eval()
+    rows = measure(model, list(stored_scenes(args.source)), args.seed, args.tokens, args.scale)
+    report(rows, args.tokens, args.scale)
+
+
+if __name__ == "__main__":
+    main()
