@@ -22,7 +22,7 @@ import argparse
 import numpy as np
 import torch
 
-from counterscene_env.dynamics import actions_from_states, unicycle_rollout
+from counterscene_env.dynamics import actions_from_states
 from counterscene_env.scene.sources import stored_scenes
 from counterscene_env.world_model.checkpoint import load_model
 from counterscene_env.world_model.eval_windows import window_batches, window_jobs
@@ -41,14 +41,13 @@ def frame_errors(d: np.ndarray, course: float) -> tuple[np.ndarray, np.ndarray]:
 
 def scaled_rollouts(model, state, acts, tokens: int, scales) -> dict[float, torch.Tensor]:
     """The first sample's token actions ``acts [B, S, K, Ta, 2]`` with the accelerations of the
-    first ``tokens`` tokens times each scale, rolled out from ``state``: ``[B, K, F, 4]``."""
-    c = model.config
+    first ``tokens`` tokens times each scale, rolled out from ``state`` as the model rolls its
+    own tokens out (``WorldModel.rollout``): ``[B, K, F, 4]``."""
     out = {}
     for f in scales:
         a = acts[:, 0].clone()
         a[..., :tokens, 0] *= f
-        steps = a.repeat_interleave(c.action_stride, -2)
-        out[f] = unicycle_rollout(state, steps, c.dt, True, c.yaw_gain, c.lateral_limit)
+        out[f] = model.rollout(model.normalize(a), state)
     return out
 
 
