@@ -882,6 +882,39 @@ def test_lane_priority_starts_silent_then_tells_who_has_the_right_of_way(scene_b
     assert torch.equal(sample(plain), sample(plain, swapped))  # the plain model never reads it
 
 
+def test_source_flag_starts_silent_then_tells_recordings_from_generated_traffic(
+    scene_batch, generated
+):
+    """Whether a scene is a recording enters at zero, so the model reading it starts as the
+    same weights without it; the loss reaches it, and once trained the samples depend on it.
+    A highway-env scene's windows say generated, a scene that does not say is a recording."""
+    scene = next(iter(generated.values()))
+    assert scene.generated and not scene.replace(metadata={}).generated
+    assert not scene_batch["recorded"].any()
+    plain = _model(TINY)
+    told = WorldModel(TINY.replace(source_flag=True)).eval()
+    missing, unexpected = told.load_state_dict(plain.state_dict(), strict=False)
+    assert (missing, unexpected) == (["denoiser.source_in.weight"], [])
+
+    def sample(m, batch=scene_batch):
+        with torch.no_grad():
+            return m.sample(batch, 2, torch.Generator().manual_seed(3)).trajectory
+
+    recorded = dict(scene_batch, recorded=torch.ones_like(scene_batch["recorded"]))
+    torch.testing.assert_close(sample(told, recorded), sample(plain), rtol=0, atol=0)
+    told.train()
+    training_loss(told, recorded, torch.Generator().manual_seed(0))["loss"].backward()
+    grad = told.denoiser.source_in.weight.grad
+    assert grad is not None and grad.abs().sum() > 0
+    told.eval()
+    with torch.no_grad():
+        told.denoiser.source_in.weight.normal_(0.0, 1.0, generator=torch.Generator().manual_seed(1))
+    assert not torch.allclose(sample(told), sample(told, recorded))
+    assert torch.equal(sample(plain), sample(plain, recorded))  # the plain model never reads it
+    with pytest.raises(ValueError, match="recorded flag"):
+        told.context({k: v for k, v in scene_batch.items() if k != "recorded"})
+
+
 def test_weighted_batches_fill_each_source_to_its_share():
     """``_weighted_batches``: source shares follow the weights whatever the window counts,
     and step k's draw is the same whether the run starts at 0 or resumes at k."""

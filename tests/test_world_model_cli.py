@@ -442,6 +442,22 @@ def test_init_adds_the_lanes_right_of_way_but_never_drops_it(trained, dataset, t
     assert "another architecture" in capsys.readouterr().err
 
 
+def test_init_adds_the_source_flag_but_never_drops_it(trained, dataset, tmp_path, capsys):
+    fine = tmp_path / "fine"
+    args = ("--init", str(trained), "--lr", "0", "--set", "source_flag=true")
+    assert _train(dataset, fine, 2, *args) == 0
+    start, model = load_model(trained), load_model(fine)
+    assert (start.config.source_flag, model.config.source_flag) == (False, True)
+    new = model.state_dict()
+    for name, tensor in start.state_dict().items():
+        assert torch.equal(tensor, new[name]), name
+    assert sorted(set(new) - set(start.state_dict())) == ["denoiser.source_in.weight"]
+    assert not new["denoiser.source_in.weight"].any()
+    capsys.readouterr()
+    assert _train(dataset, tmp_path / "back", 2, "--init", str(fine)) == 1
+    assert "another architecture" in capsys.readouterr().err
+
+
 def test_init_may_change_which_lanes_the_window_holds(dataset, tmp_path):
     # The window's lanes size no tensor: a model trained on the ego-centred map of 32 lanes
     # seeds the default's agent-anchored 48, every tensor carried over.

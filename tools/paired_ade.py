@@ -4,6 +4,11 @@ velocity, and each model's difference from the first, paired by scene with a boo
 
     python tools/paired_ade.py scenarionet:path/to/nuscenes_mini_scenarionet runs/a runs/b default
     python tools/paired_ade.py data/ngsim_heldout default --by 'Peach|US101'   # per road
+    python tools/paired_ade.py scenarionet:DIR runs/flagged runs/flagged@generated
+
+A model named ``M@generated`` (or ``M@recorded``) reads every scene as highway-env's traffic
+(or as a recording): the windows' ``recorded`` flag that a model trained with
+``source_flag`` reads (docs/world_model.md, "Real driving and generated traffic told apart").
 
 Every second of each log where 3 s of history and 3 s of future exist, every agent the model
 sees (as ``counterscene evaluate-model --every 1``, one sample per sampling call, the same seed
@@ -18,6 +23,7 @@ import re
 import numpy as np
 import torch
 
+from counterscene_env.scene.core import GENERATED_SOURCE
 from counterscene_env.scene.sources import stored_scenes
 from counterscene_env.world_model.checkpoint import load_model
 from counterscene_env.world_model.eval_windows import window_batches, window_jobs
@@ -62,7 +68,7 @@ def main() -> None:
     )
     args = ap.parse_args()
     scenes = list(stored_scenes(args.source))
-    sums = {m: per_scene(load_model(m).eval(), scenes, args.seed) for m in args.models}
+    sums = {m: model_sums(m, scenes, args.seed) for m in args.models}
     rng = np.random.default_rng(0)
     draws = rng.integers(0, len(scenes), (args.bootstrap, len(scenes)))
     first = sums[args.models[0]]
@@ -80,6 +86,17 @@ def main() -> None:
         if args.by:
             for group, rows in groups(scenes, args.by).items():
                 print("  " + group_line(group, s[rows], rng, args.bootstrap))
+
+
+def model_sums(name: str, scenes, seed: int) -> np.ndarray:
+    """:func:`per_scene` of model ``name`` (``DIR``, ``DIR@generated`` or ``DIR@recorded``)."""
+    path, _, read_as = name.partition("@")
+    if read_as not in ("", "generated", "recorded"):
+        raise SystemExit(f"{name}: after '@' comes 'generated' or 'recorded', not {read_as!r}")
+    if read_as:
+        source = GENERATED_SOURCE if read_as == "generated" else "recording"
+        scenes = [s.replace(metadata={**s.metadata, "source": source}) for s in scenes]
+    return per_scene(load_model(path).eval(), scenes, seed)
 
 
 def groups(scenes, pattern: str) -> dict[str, list[int]]:

@@ -33,6 +33,8 @@ DEFAULT_HISTORY_STEPS = 31  # 3 s of history including the current frame (paper:
 MIN_HISTORY_STEPS = 10
 #: The future a short log's "now" keeps where the log allows it, steps (1 s).
 MIN_FUTURE_STEPS = 10
+#: ``metadata["source"]`` of the scenes highway-env's traffic generates (``scene.highway``).
+GENERATED_SOURCE = "highway-env"
 
 
 class SceneError(ValueError):
@@ -195,6 +197,12 @@ class Scene:
     def vehicle_mask(self) -> np.ndarray:
         """``[N]`` bool, True for agents of type ``"vehicle"``."""
         return self.agent_types == "vehicle"
+
+    @property
+    def generated(self) -> bool:
+        """Whether the scene is highway-env's generated traffic (``metadata["source"]``), not
+        a recording of real driving (every imported log, and any scene that does not say)."""
+        return self.metadata.get("source") == GENERATED_SOURCE
 
     @property
     def velocities(self) -> np.ndarray:

@@ -40,7 +40,7 @@ import shapely
 
 from counterscene_env.config import Scenario, Yielding
 from counterscene_env.geometry import overlaps_over_time, wrap_angle
-from counterscene_env.scene.core import DEFAULT_DT, Scene
+from counterscene_env.scene.core import DEFAULT_DT, GENERATED_SOURCE, Scene
 from counterscene_env.scene.highway_traffic import VEHICLE_CLASSES, Traffic, make_env
 from counterscene_env.scene.idm_constants import pristine_idm_constants
 from counterscene_env.scene.road import RoadMap
@@ -280,7 +280,7 @@ class _Recorder:
             dt=DEFAULT_DT,
             scenario_id=f"{scenario}/seed={seed}",
             metadata={
-                "source": "highway-env",
+                "source": GENERATED_SOURCE,
                 "scenario": scenario,
                 "seed": int(seed),
                 "generator_version": GENERATOR_VERSION,

@@ -52,6 +52,7 @@ def synthetic_batch(model: WorldModel, generator: torch.Generator) -> dict[str, 
         "map_valid": torch.ones(1, M, dtype=torch.bool),
         "map_widths": torch.full((1, M), 3.5),
         "map_priority": torch.zeros(1, M),
+        "recorded": torch.zeros(1),
     }
 
 

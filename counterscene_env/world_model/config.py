@@ -62,6 +62,13 @@ class ModelConfig:
             tell from the map who has the right of way at highway-env's intersection, whose
             four arms have the same shape. Measured in docs/world_model.md, "The network's
             crossing collisions".
+        source_flag: every agent's tokens also read whether the scene is a recording of real
+            driving or highway-env's generated traffic (the window's ``recorded``, from
+            ``Scene.generated``), so that one model trained on both can keep highway-env's
+            habits (exact speeds between manoeuvres, stop-and-go giving way) to highway-env's
+            roads. Without it (the default, and checkpoints without the key) the network
+            brings both to every road. Measured in docs/world_model.md, "Real driving and
+            generated traffic told apart".
         d_model: token width.
         num_heads: attention heads (must divide ``d_model``).
         num_blocks: blocks of (temporal, social, map) attention + MLP.
@@ -125,6 +132,7 @@ class ModelConfig:
     local_lanes: int = 0
     local_radius: float = 30.0
     lane_priority: bool = False
+    source_flag: bool = False
     d_model: int = 96
     num_heads: int = 4
     num_blocks: int = 3

@@ -102,6 +102,11 @@ class Denoiser(nn.Module):
             if cfg.local_lanes:
                 self.local_priority_in = nn.Linear(1, d, bias=False)
                 nn.init.zeros_(self.local_priority_in.weight)
+        if cfg.source_flag:
+            # Recorded (1) or generated (0) enters every agent embedding through a column of
+            # its own, zero at the start: the model starts as the one without it.
+            self.source_in = nn.Linear(1, d, bias=False)
+            nn.init.zeros_(self.source_in.weight)
         if cfg.plan_features != "none":
             self.plan_in = _mlp(PLAN_FEATURES, d, d)
             self.pair_mlp = _mlp(PAIR_FEATURES, 32, cfg.num_heads)
@@ -152,6 +157,7 @@ class Denoiser(nn.Module):
         generator: torch.Generator | None = None,
         local_lanes: torch.Tensor | None = None,
         local_valid: torch.Tensor | None = None,
+        recorded: torch.Tensor | None = None,
     ) -> Context:
         """Embed everything that does not depend on the diffusion step.
 
@@ -168,6 +174,8 @@ class Denoiser(nn.Module):
             local_lanes: ``[B, K, Ml, P, 5 or 6]`` each agent's nearest lane segments in its own
                 frame (required when ``local_lanes > 0``).
             local_valid: ``[B, K, Ml]`` bool.
+            recorded: ``[B]`` 1 for a recording of real driving, 0 for generated traffic
+                (required with ``source_flag``).
         """
         cfg = self.cfg
         K = history.shape[1]
@@ -189,11 +197,16 @@ class Denoiser(nn.Module):
                 generator,
                 None if local_lanes is None else pad(local_lanes, 1),
                 None if local_valid is None else pad(local_valid, 1),
+                recorded,
             )
             return ctx.cut_agents(K)
         B, K, Hh, _ = history.shape
         hist = self.history_in(history)
         agent_emb = self.agent_in(agent)
+        if cfg.source_flag:
+            if recorded is None:
+                raise ValueError("this model needs the windows' recorded flag")
+            agent_emb = agent_emb + self.source_in(recorded.to(agent.dtype)[:, None])[:, None]
 
         key_ok = torch.cat([history_valid, history_valid.new_ones(B, K, cfg.action_tokens)], dim=-1)
         temporal = torch.where(key_ok, 0.0, NEG)[:, :, None, None, :]  # [B, K, 1, 1, L]

@@ -221,6 +221,7 @@ class WorldModel(nn.Module):
             generator,
             local,
             local_ok,
+            batch.get("recorded") if c.source_flag else None,
         )
 
     # ------------------------------------------------------------------ sampling

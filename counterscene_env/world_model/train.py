@@ -210,6 +210,10 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         adds_priority = model_cfg.lane_priority and not start.config.lane_priority
         if adds_priority:
             same = same.replace(lane_priority=True)
+        # And one without the source flag (its column starts at zero).
+        adds_source = model_cfg.source_flag and not start.config.source_flag
+        if adds_source:
+            same = same.replace(source_flag=True)
         if same != model_cfg:
             raise ValueError(
                 f"--init model {cfg.init!r} has another architecture than preset "
@@ -218,7 +222,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         normalization = normalization or start.normalization
         model = WorldModel(model_cfg, normalization).to(device)
         missing, unexpected = model.load_state_dict(
-            start.state_dict(), strict=not (adds_local or adds_plan or adds_priority)
+            start.state_dict(), strict=not (adds_local or adds_plan or adds_priority or adds_source)
         )
         new_modules = (
             ".local",
@@ -226,6 +230,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             "denoiser.pair_mlp.",
             "denoiser.priority_in.",
             "denoiser.local_priority_in.",
+            "denoiser.source_in.",
         )
         if unexpected or any(not any(m in k for m in new_modules) for k in missing):
             raise ValueError(f"--init model {cfg.init!r}: tensors do not match the new model")

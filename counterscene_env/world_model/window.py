@@ -25,6 +25,8 @@ key                 shape, dtype        meaning
 ``map_widths``      [M] float32         lane width [m]
 ``map_priority``    [M] float32         the lane's right of way (``RoadMap.lane_priorities``:
                                         at a crossing the lower gives way; 0: none given)
+``recorded``        [] float32          1: a recording of real driving, 0: highway-env's
+                                        generated traffic (``Scene.generated``)
 ``origin``          [3] float64         world x [m], y [m], yaw [rad] of the frame
 ``scene_index``     [] int64            row of the scene in this dataset
 ``t0``              [] int64            the "now" step in that scene
@@ -60,6 +62,7 @@ MODEL_KEYS = (
     "map_valid",
     "map_widths",
     "map_priority",
+    "recorded",
 )
 
 
@@ -194,6 +197,7 @@ def make_window(
         "map_valid": lane_valid,
         "map_widths": lane_widths,
         "map_priority": lane_priority,
+        "recorded": np.float32(not scene.generated),
         "origin": origin,
         "rows": window_rows,
         "scene_index": np.int64(0),
