@@ -67,8 +67,8 @@ class ModelConfig:
             ``Scene.generated``), so that one model trained on both can keep highway-env's
             habits (exact speeds between manoeuvres, stop-and-go giving way) to highway-env's
             roads. Without it (the default, and checkpoints without the key) the network
-            brings both to every road. Measured in docs/world_model.md, "Real driving and
-            generated traffic told apart".
+            must tell them apart from the scene itself. Fine-tuned in, it was not taken up
+            (docs/world_model.md, "Real driving and generated traffic told apart").
         d_model: token width.
         num_heads: attention heads (must divide ``d_model``).
         num_blocks: blocks of (temporal, social, map) attention + MLP.
