@@ -425,34 +425,27 @@ def test_init_adds_the_plan_features_but_never_drops_them(trained, dataset, tmp_
     assert "another architecture" in capsys.readouterr().err
 
 
-def test_init_adds_the_lanes_right_of_way_but_never_drops_it(trained, dataset, tmp_path, capsys):
+@pytest.mark.parametrize(
+    ("key", "columns"),
+    [
+        ("lane_priority", ["denoiser.local_priority_in.weight", "denoiser.priority_in.weight"]),
+        ("source_flag", ["denoiser.source_in.weight"]),
+    ],
+)
+def test_init_adds_an_input_but_never_drops_it(trained, dataset, tmp_path, capsys, key, columns):
+    """The lanes' right of way and the source flag: a fine-tune may switch either on, every
+    tensor kept and its new columns at zero; a model with it cannot seed one without."""
     fine = tmp_path / "fine"
-    args = ("--init", str(trained), "--lr", "0", "--set", "lane_priority=true")
+    args = ("--init", str(trained), "--lr", "0", "--set", f"{key}=true")
     assert _train(dataset, fine, 2, *args) == 0
     start, model = load_model(trained), load_model(fine)
-    assert (start.config.lane_priority, model.config.lane_priority) == (False, True)
+    assert (getattr(start.config, key), getattr(model.config, key)) == (False, True)
     new = model.state_dict()
     for name, tensor in start.state_dict().items():
         assert torch.equal(tensor, new[name]), name
     added = sorted(set(new) - set(start.state_dict()))
-    assert added == ["denoiser.local_priority_in.weight", "denoiser.priority_in.weight"]
+    assert added == columns
     assert not any(new[name].any() for name in added)
-    capsys.readouterr()
-    assert _train(dataset, tmp_path / "back", 2, "--init", str(fine)) == 1
-    assert "another architecture" in capsys.readouterr().err
-
-
-def test_init_adds_the_source_flag_but_never_drops_it(trained, dataset, tmp_path, capsys):
-    fine = tmp_path / "fine"
-    args = ("--init", str(trained), "--lr", "0", "--set", "source_flag=true")
-    assert _train(dataset, fine, 2, *args) == 0
-    start, model = load_model(trained), load_model(fine)
-    assert (start.config.source_flag, model.config.source_flag) == (False, True)
-    new = model.state_dict()
-    for name, tensor in start.state_dict().items():
-        assert torch.equal(tensor, new[name]), name
-    assert sorted(set(new) - set(start.state_dict())) == ["denoiser.source_in.weight"]
-    assert not new["denoiser.source_in.weight"].any()
     capsys.readouterr()
     assert _train(dataset, tmp_path / "back", 2, "--init", str(fine)) == 1
     assert "another architecture" in capsys.readouterr().err

@@ -31,6 +31,7 @@ from counterscene_env.scene.blocks import (
     convert_scenarionet_block,
     generate_block,
 )
+from counterscene_env.scene.core import GENERATED_SOURCE
 from counterscene_env.scene.manifest import (
     MANIFEST,
     open_manifest,
@@ -62,7 +63,7 @@ def generate_dataset(
         check_int(key, value, ge=1)
     check_int("seed", seed, ge=0)
     params = {
-        "source": "highway-env",
+        "source": GENERATED_SOURCE,
         "scenario": scenario,
         "seed": int(seed),
         "shard_size": int(shard_size),

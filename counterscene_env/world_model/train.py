@@ -43,6 +43,9 @@ from counterscene_env.world_model.train_config import (
 
 STATE_FILE = "last.pt"
 LOG_FILE = "log.jsonl"
+#: ``ModelConfig`` switches that a fine-tune (``--init``) may turn on: each adds input columns
+#: that start at zero, so the fine-tune starts from the initial model's exact predictions.
+ADDED_INPUTS = ("lane_priority", "source_flag")
 #: Offset of the parked cars' seeds from the batch draws' (``seed * 100003 + step``).
 PARKED_STREAM = 2**40
 
@@ -206,14 +209,11 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         adds_plan = start.config.plan_features == "none" != model_cfg.plan_features
         if model_cfg.plan_features != "none":
             same = same.replace(plan_features=model_cfg.plan_features)
-        # And one without the lanes' right of way (its input columns start at zero).
-        adds_priority = model_cfg.lane_priority and not start.config.lane_priority
-        if adds_priority:
-            same = same.replace(lane_priority=True)
-        # And one without the source flag (its column starts at zero).
-        adds_source = model_cfg.source_flag and not start.config.source_flag
-        if adds_source:
-            same = same.replace(source_flag=True)
+        # And one without an input of ADDED_INPUTS (its columns start at zero).
+        added = {
+            k: True for k in ADDED_INPUTS if getattr(model_cfg, k) and not getattr(start.config, k)
+        }
+        same = same.replace(**added)
         if same != model_cfg:
             raise ValueError(
                 f"--init model {cfg.init!r} has another architecture than preset "
@@ -222,7 +222,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         normalization = normalization or start.normalization
         model = WorldModel(model_cfg, normalization).to(device)
         missing, unexpected = model.load_state_dict(
-            start.state_dict(), strict=not (adds_local or adds_plan or adds_priority or adds_source)
+            start.state_dict(), strict=not (adds_local or adds_plan or added)
         )
         new_modules = (
             ".local",
