@@ -13,6 +13,7 @@ from safetensors.torch import load_file
 
 from counterscene_env.cli import main
 from counterscene_env.scene.shards import save_scenes
+from counterscene_env.world_model.bench import synthetic_batch
 from counterscene_env.world_model.checkpoint import load_model
 from counterscene_env.world_model.config import preset
 
@@ -448,6 +449,30 @@ def test_init_adds_an_input_but_never_drops_it(trained, dataset, tmp_path, capsy
     assert not any(new[name].any() for name in added)
     capsys.readouterr()
     assert _train(dataset, tmp_path / "back", 2, "--init", str(fine)) == 1
+    assert "another architecture" in capsys.readouterr().err
+
+
+def test_init_appends_blocks_that_start_as_the_identity(trained, dataset, tmp_path, capsys):
+    """A deeper network seeded from a trained one: every tensor kept, the new blocks appended,
+    and the same samples as the initial model to rounding (they start as the identity); the
+    deeper model cannot seed a shallower one."""
+    deep = tmp_path / "deep"
+    assert (
+        _train(dataset, deep, 2, "--init", str(trained), "--lr", "0", "--set", "num_blocks=3") == 0
+    )
+    start, model = load_model(trained).eval(), load_model(deep).eval()
+    assert (start.config.num_blocks, model.config.num_blocks) == (1, 3)
+    new = model.state_dict()
+    for name, tensor in start.state_dict().items():
+        assert torch.equal(tensor, new[name]), name
+    assert {k.split(".")[2] for k in set(new) - set(start.state_dict())} == {"1", "2"}
+    batch = synthetic_batch(start, torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        a = start.sample(batch, 2, torch.Generator().manual_seed(1)).trajectory
+        b = model.sample(batch, 2, torch.Generator().manual_seed(1)).trajectory
+    torch.testing.assert_close(a, b)
+    capsys.readouterr()
+    assert _train(dataset, tmp_path / "back", 2, "--init", str(deep)) == 1
     assert "another architecture" in capsys.readouterr().err
 
 

@@ -144,6 +144,17 @@ class Block(nn.Module):
             nn.Linear(cfg.mlp_ratio * d, d),
         )
 
+    def start_as_identity(self) -> None:
+        """Zero every residual branch's last layer, so the block passes its input through
+        unchanged: a block appended to a trained network (``counterscene train --init`` with
+        more ``num_blocks``) leaves its predictions exactly as they were."""
+        last = [self.temporal.out, self.social.out, self.map.out, self.mlp[-1]]
+        if hasattr(self, "local"):
+            last.append(self.local.out)
+        for layer in last:
+            nn.init.zeros_(layer.weight)
+            nn.init.zeros_(layer.bias)
+
     def remember(self, ctx: Context) -> MapMemory:
         """This block's map keys and values for ``ctx`` (``MapMemory``)."""
         local = None

@@ -214,6 +214,11 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             k: True for k in ADDED_INPUTS if getattr(model_cfg, k) and not getattr(start.config, k)
         }
         same = same.replace(**added)
+        # And a network with more blocks: the new ones are appended and start as the identity
+        # (their residual branches at zero), so the fine-tune starts from the exact predictions.
+        kept_blocks = start.config.num_blocks
+        if model_cfg.num_blocks > kept_blocks:
+            same = same.replace(num_blocks=model_cfg.num_blocks)
         if same != model_cfg:
             raise ValueError(
                 f"--init model {cfg.init!r} has another architecture than preset "
@@ -221,9 +226,12 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             )
         normalization = normalization or start.normalization
         model = WorldModel(model_cfg, normalization).to(device)
+        grown = model_cfg.num_blocks > kept_blocks
         missing, unexpected = model.load_state_dict(
-            start.state_dict(), strict=not (adds_local or adds_plan or added)
+            start.state_dict(), strict=not (adds_local or adds_plan or added or grown)
         )
+        for block in model.denoiser.blocks[kept_blocks:]:
+            block.start_as_identity()
         new_modules = (
             ".local",
             "denoiser.plan_in.",
@@ -231,6 +239,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             "denoiser.priority_in.",
             "denoiser.local_priority_in.",
             "denoiser.source_in.",
+            *(f"denoiser.blocks.{i}." for i in range(kept_blocks, model_cfg.num_blocks)),
         )
         if unexpected or any(not any(m in k for m in new_modules) for k in missing):
             raise ValueError(f"--init model {cfg.init!r}: tensors do not match the new model")
