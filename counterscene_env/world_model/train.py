@@ -217,7 +217,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         # And a network with more blocks: the new ones are appended and start as the identity
         # (their residual branches at zero), so the fine-tune starts from the exact predictions.
         kept_blocks = start.config.num_blocks
-        if model_cfg.num_blocks > kept_blocks:
+        grown = model_cfg.num_blocks > kept_blocks
+        if grown:
             same = same.replace(num_blocks=model_cfg.num_blocks)
         if same != model_cfg:
             raise ValueError(
@@ -226,7 +227,6 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             )
         normalization = normalization or start.normalization
         model = WorldModel(model_cfg, normalization).to(device)
-        grown = model_cfg.num_blocks > kept_blocks
         missing, unexpected = model.load_state_dict(
             start.state_dict(), strict=not (adds_local or adds_plan or added or grown)
         )
