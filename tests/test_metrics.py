@@ -75,6 +75,31 @@ def test_crash_at_known_step_per_second_cr(road):
         metrics.evaluate_scene(scene, adversary="nobody")
 
 
+def test_adversary_per_step_counts_every_adversary_from_its_choice(road):
+    """A closed loop that re-selects at its replans (``selection_source="model"``) hands
+    one adversary per step: a contact with any agent that was the adversary counts, from
+    the step it was chosen on, and the record names them all."""
+    scene = crash_scene(road)  # the ego meets "obstacle" (row 1) at rollout step 24
+    T = metrics.rollout_steps(scene)
+    chosen_early = ["neighbour"] * 10 + ["obstacle"] * 10 + ["neighbour"] * (T - 20)
+    res = metrics.evaluate_scene(scene, adversary=chosen_early)
+    assert res["cr_ego_adversary"] == 1.0  # the former adversary hit the ego
+    assert res["adversary_ids"] == ["neighbour", "obstacle"]
+    assert res["adversary_id"] == "neighbour"  # the latest one
+    assert [res["per_second"][str(h)]["CR_adv"] for h in (2, 3)] == [0.0, 1.0]
+    assert res["min_clearance_adversary"] == 0.0
+    chosen_late = [None] * 60 + ["obstacle"] * (T - 60)  # only after the ego drove through
+    late = metrics.evaluate_scene(scene, adversary=chosen_late)
+    assert late["cr_ego_adversary"] == 0.0 and late["adversary_ids"] == ["obstacle"]
+    never = metrics.evaluate_scene(scene, adversary=[None] * T)
+    assert math.isnan(never["cr_ego_adversary"]) and never["adversary_id"] is None
+    assert metrics.evaluate_scene(scene, adversary=["obstacle"] * T) == metrics.evaluate_scene(
+        scene, adversary="obstacle"
+    ) | {"adversary_ids": ["obstacle"]}
+    with pytest.raises(ValueError, match="adversary: one entry per rollout step"):
+        metrics.evaluate_scene(scene, adversary=["obstacle"] * (T - 1))
+
+
 def test_rollout_cut_before_crash_ttc_and_clearance(road):
     scene = crash_scene(road, steps=HIST + 20)  # last step 22: ego front at 24, gap 4.5 m
     res = metrics.evaluate_scene(scene, adversary="obstacle")
@@ -312,6 +337,7 @@ def test_evaluate_scene_record_is_json_and_complete(road):
         "scenario_id",
         "rollout_s",
         "adversary_id",
+        "adversary_ids",
         "per_second",
         *metrics.SCENE_KEYS,
     }

@@ -237,6 +237,10 @@ def test_model_source_reselects_at_every_replan(model, generated):
         sources.append((info["replanned"], info["fallback"]))
     assert [r for r, _ in sources].count(True) == 2  # steps 0 and 5 of 10
     assert sources[0][1] != "not selected yet"  # mined on the model's own sample
+    # The episode names the adversary of every step, for the metrics to count them all.
+    ep = loop.episodes[0]
+    assert len(ep.adversary_ids()) == loop.scene(0).num_steps - scene.current_index - 1
+    assert ep.adversary_ids()[-1] == info["adversary"]
 
 
 def test_several_egos_each_follow_their_actions_with_their_own_adversary(model, generated):

@@ -64,9 +64,10 @@ def ends_episode(info: Mapping, config: Mapping) -> bool:
     )
 
 
-def episode_summary(sim: Scene, factual: Scene, ego: int, adversary: int | None) -> dict:
+def episode_summary(sim: Scene, factual: Scene, ego: int, adversary: Sequence[str | None]) -> dict:
     """Ego row ``ego``'s metric summary (``metrics.evaluate_scene``) of the simulated episode
-    ``sim`` so far, against the log ``factual`` over the same steps; ``adversary``: its row."""
+    ``sim`` so far, against the log ``factual`` over the same steps; ``adversary``: its
+    adversary's id at each rollout step (``Episode.adversary_ids``)."""
     if ego != sim.ego_index:
         sim = sim.replace(ego_index=ego)
     factual = factual.time_slice(0, sim.num_steps).replace(ego_index=ego)
@@ -124,9 +125,9 @@ class EgoOutcomes:
 
     def episode_metrics(self, k: int = 0) -> dict:
         """Ego ``k``'s metric summary of the episode so far (metrics.evaluate_scene)."""
-        conflict = self.loop.selection(self.slot, k).conflict
-        adversary = None if conflict is None else conflict.agent
-        return episode_summary(self.loop.scene(self.slot), self.scene, self.egos[k], adversary)
+        return episode_summary(
+            self.loop.scene(self.slot), self.scene, self.egos[k], self.episode.adversary_ids(k)
+        )
 
     def stop_ended_egos(self) -> None:
         """Mark crashed every ego whose episode the frames so far end: highway-env brakes a

@@ -4,6 +4,7 @@ lookup, the NaN-aware mean."""
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
@@ -92,6 +93,34 @@ def adversary_index(scene: Scene, adversary: int | str) -> int:
     if idx == scene.ego_index:
         raise ValueError("the adversary cannot be the ego")
     return idx
+
+
+def adversary_tenures(
+    scene: Scene, adversary: int | str | Sequence[int | str | None]
+) -> list[tuple[int, int]]:
+    """``(row, first rollout step)`` of every agent that was the ego's adversary.
+
+    ``adversary`` is one agent (row or id: the adversary for the whole rollout, from step 0)
+    or one entry per rollout step (None: no adversary at that step), as a closed loop that
+    re-selects at its replans records it (``selection_source="model"``). Each distinct agent
+    is listed once, from the first step it held the role, in that order: once chosen, the
+    guidance has moved it toward the ego, so a later contact with it still counts.
+    """
+    if isinstance(adversary, (str, int, np.integer)):
+        return [(adversary_index(scene, adversary), 0)]
+    steps = list(adversary)
+    if len(steps) != rollout_steps(scene):
+        raise ValueError(
+            f"adversary: one entry per rollout step, {rollout_steps(scene)}, got {len(steps)}"
+        )
+    named: dict[int | str, int] = {}  # each name's first step, in the order chosen
+    for step, agent in enumerate(steps):
+        if agent is not None and agent not in named:
+            named[agent] = step
+    first: dict[int, int] = {}  # a row named both by row and by id counts once
+    for agent, step in named.items():
+        first.setdefault(adversary_index(scene, agent), step)
+    return list(first.items())
 
 
 def nan_mean(values: np.ndarray) -> float:

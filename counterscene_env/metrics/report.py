@@ -15,6 +15,7 @@ from counterscene_env.metrics.common import (
     REACH,
     SCENE_KEYS,
     adversary_index,
+    adversary_tenures,
     horizon_steps,
     nan_mean,
     rollout_steps,
@@ -58,10 +59,17 @@ def horizon_values(record: dict, second: str) -> dict:
     return record["per_second"].get(second, {})
 
 
+def _latest_adversary(sim: Scene, adversary) -> str | None:
+    """The id of the adversary at the last rollout step that had one (None: none)."""
+    if adversary is not None and not isinstance(adversary, (str, int, np.integer)):
+        adversary = next((a for a in reversed(list(adversary)) if a is not None), None)
+    return None if adversary is None else str(sim.agent_ids[adversary_index(sim, adversary)])
+
+
 def evaluate_scene(
     sim: Scene,
     factual: Scene | None = None,
-    adversary: int | str | None = None,
+    adversary: int | str | Sequence[int | str | None] | None = None,
     horizons: Sequence[float] = tuple(range(1, 11)),
     smooth: float = 0.0,
 ) -> dict:
@@ -71,12 +79,17 @@ def evaluate_scene(
         sim: the simulated scene (history + rollout).
         factual: its factual log (same agent ids), for ADE/FDE; None: ADE/FDE are NaN.
         adversary: the adversary's row or id, for ``cr_ego_adversary`` and
-            ``min_clearance_adversary`` (NaN without one).
+            ``min_clearance_adversary`` (NaN without one); or one entry per rollout step
+            (None: none then), when the closed loop re-selects at its replans: every agent
+            that was the adversary counts from the first step it was
+            (``metrics.common.adversary_tenures``).
         horizons: seconds at which the per-second values are reported.
         smooth: s, moving-average window of the acceleration signal for HBR (0: none).
 
     Returns:
-        ``{"scenario_id", "rollout_s", "adversary_id", "per_second", <SCENE_KEYS>}`` where
+        ``{"scenario_id", "rollout_s", "adversary_id", "adversary_ids", "per_second",
+        <SCENE_KEYS>}`` where ``adversary_ids`` lists every agent that was the adversary, in
+        the order they were first chosen, and ``adversary_id`` is the latest (None: none);
         ``per_second[str(h)]`` holds ``ADE``/``FDE`` (m), ``ORR``, ``HBR`` (= hbr_ego within h),
         ``CR`` (ego collided at or before h), ``CR_adv`` (with the adversary; NaN without one)
         and ``DEC`` (the ego's strongest braking within h, m/s^2, so ``DEC > x`` is HBR at
@@ -108,15 +121,18 @@ def evaluate_scene(
         new = overlaps & ~logged_overlap_pairs(sim, factual)[None]
         cr_non_ego_new = float(any_collision(new, e, include_ego=False).any())
 
+    tenures = [] if adversary is None else adversary_tenures(sim, adversary)
+    adversary_ids = [str(sim.agent_ids[row]) for row, _ in tenures]
     adv_hits = None
-    if adversary is not None:
-        adv = adversary_index(sim, adversary)
-        adversary_id = str(sim.agent_ids[adv])
-        adv_hits = ego_adversary_collision_steps(sim, adv)
+    if tenures:
+        adv_hits = np.zeros(rollout_steps(sim), bool)
+        for row, since in tenures:
+            adv_hits |= ego_adversary_collision_steps(sim, row, since)
         cr_adv = float(adv_hits.any())
-        clearance = min_clearance(sim, adv)
+        gaps = [min_clearance(sim, row, since) for row, since in tenures]
+        clearance = min((g for g in gaps if not math.isnan(g)), default=math.nan)
     else:
-        adversary_id, cr_adv, clearance = None, math.nan, math.nan
+        cr_adv, clearance = math.nan, math.nan
 
     per_second = {}
     steps = np.arange(rollout_steps(sim))
@@ -138,7 +154,8 @@ def evaluate_scene(
     return {
         "scenario_id": str(sim.scenario_id),
         "rollout_s": float(rollout_steps(sim) * sim.dt),
-        "adversary_id": adversary_id,
+        "adversary_id": _latest_adversary(sim, adversary),
+        "adversary_ids": adversary_ids,
         "per_second": per_second,
         "cr": float(ego_hits.any()),
         "cr_all_agents": float(any_collision(overlaps, e, include_ego=True).any()),

@@ -92,8 +92,9 @@ def agent_collision_steps(scene: Scene, include_ego: bool = True) -> np.ndarray:
     return any_collision(agent_overlaps(scene), scene.ego_index, include_ego)
 
 
-def ego_adversary_collision_steps(scene: Scene, adversary: int | str) -> np.ndarray:
-    """``[T_roll]`` bool: the ego's and the adversary's boxes overlap (both valid)."""
+def ego_adversary_collision_steps(scene: Scene, adversary: int | str, since: int = 0) -> np.ndarray:
+    """``[T_roll]`` bool: the ego's and the adversary's boxes overlap (both valid), at rollout
+    steps from ``since`` on (before it the agent was not yet the adversary)."""
     sl, e, a = rollout_slice(scene), scene.ego_index, adversary_index(scene, adversary)
     rows = [e, a]
     hit = geometry.boxes_overlap(
@@ -104,7 +105,9 @@ def ego_adversary_collision_steps(scene: Scene, adversary: int | str) -> np.ndar
         scene.yaws[a, sl],
         scene.extents[a],
     )
-    return hit & scene.valid[rows][:, sl].all(0)
+    hit &= scene.valid[rows][:, sl].all(0)
+    hit[:since] = False
+    return hit
 
 
 def _finite_difference_acceleration(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
@@ -290,11 +293,12 @@ def min_ttc_ego(scene: Scene, horizon: float = 10.0, step: float = 0.1) -> float
     return float(ttc.min()) if ttc.size else math.inf
 
 
-def min_clearance(scene: Scene, adversary: int | str) -> float:
-    """Smallest box-to-box distance, m, between ego and adversary over rollout steps where both
-    are valid (0 once they touch); NaN if there are none."""
+def min_clearance(scene: Scene, adversary: int | str, since: int = 0) -> float:
+    """Smallest box-to-box distance, m, between ego and adversary over rollout steps from
+    ``since`` on where both are valid (0 once they touch); NaN if there are none."""
     sl, e, a = rollout_slice(scene), scene.ego_index, adversary_index(scene, adversary)
     both = scene.valid[e, sl] & scene.valid[a, sl]
+    both[:since] = False
     if not both.any():
         return math.nan
     d = geometry.box_distance(

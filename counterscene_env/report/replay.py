@@ -168,7 +168,7 @@ def _replay(loop: ClosedLoop, b: int, scene: Scene, record: dict, frames: list[F
     ep = loop.episodes[b]
     simulated = loop.scene(b)
     again = metrics.evaluate_scene(
-        simulated, scene.time_slice(0, simulated.num_steps), adversary=ep.adversary
+        simulated, scene.time_slice(0, simulated.num_steps), adversary=ep.adversary_ids()
     )
     return Replay(
         record=record,

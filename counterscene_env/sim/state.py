@@ -142,6 +142,13 @@ class Episode:
         """Each ego's adversary row (None: fallback)."""
         return [None if s.conflict is None else s.conflict.agent for s in self.selections]
 
+    def adversary_ids(self, k: int = 0) -> list[str | None]:
+        """Ego ``k``'s adversary id at each rollout step so far (index 0: step ``start + 1``;
+        None: none then), as its step records say. With ``selection_source="model"`` it can
+        change at every replan; ``metrics.evaluate_scene`` takes this list and counts a
+        contact with any of them from the step it was chosen."""
+        return [step[k]["adversary"] for step in self.records[1:]]
+
     @property
     def done(self) -> bool:
         """The episode reached its last step."""

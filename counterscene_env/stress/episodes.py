@@ -330,7 +330,7 @@ def _record(loop: ClosedLoop, b: int, scene: Scene, seed: int, seconds: float, i
     ep = loop.episodes[b]
     sim = loop.scene(b)
     factual = scene.time_slice(0, sim.num_steps)
-    rec = metrics.evaluate_scene(sim, factual, adversary=ep.adversary)
+    rec = metrics.evaluate_scene(sim, factual, adversary=ep.adversary_ids())
     conflict = ep.conflict
     scene_seed = scene.metadata.get("seed")
     rec.update(
