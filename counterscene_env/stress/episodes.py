@@ -326,7 +326,10 @@ def play_batch(
 
 def _record(loop: ClosedLoop, b: int, scene: Scene, seed: int, seconds: float, index: int) -> dict:
     """Episode ``index``'s record: its metrics (:func:`metrics.evaluate_scene` of batch row
-    ``b``), selection, seeds and timing [s]."""
+    ``b``, over every adversary the episode had), selection, seeds and timing [s]. The
+    selection fields (``adversary_type``, ``adversary_tier``, ``danger_score``,
+    ``fallback``) are the last selection's: with ``selection_source="model"``, the last
+    replan's, which may have found none."""
     ep = loop.episodes[b]
     sim = loop.scene(b)
     factual = scene.time_slice(0, sim.num_steps)
