@@ -47,13 +47,14 @@ def main() -> None:
         for ep in loop.episodes:
             ids = ep.adversary_ids()
             per_episode.append(len({a for a in ids if a is not None}))
-            for info, adversary in zip(ep.records[1:], ids, strict=True):
+            for step in ep.records[1:]:  # the rollout steps' infos, the first ego's
+                info = step[0]
                 steps += 1
-                if adversary is None:
+                if info["adversary"] is None:
                     without += 1
-                    reasons[info[0]["fallback"]] += 1
+                    reasons[info["fallback"]] += 1
                 else:
-                    types[info[0]["conflict_type"]] += 1
+                    types[info["conflict_type"]] += 1
     print(
         f"{args.scenario}, {args.selector}, source {args.source}: {len(per_episode)} episodes, "
         f"{np.mean(per_episode):.1f} adversaries per episode; "

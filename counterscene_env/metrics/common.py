@@ -95,6 +95,11 @@ def adversary_index(scene: Scene, adversary: int | str) -> int:
     return idx
 
 
+def one_agent(adversary: object) -> bool:
+    """Whether ``adversary`` names one agent (a row or an id), not one entry per step."""
+    return isinstance(adversary, (str, int, np.integer))
+
+
 def adversary_tenures(
     scene: Scene, adversary: int | str | Sequence[int | str | None]
 ) -> list[tuple[int, int]]:
@@ -106,7 +111,7 @@ def adversary_tenures(
     is listed once, from the first step it held the role, in that order: once chosen, the
     guidance has moved it toward the ego, so a later contact with it still counts.
     """
-    if isinstance(adversary, (str, int, np.integer)):
+    if one_agent(adversary):
         return [(adversary_index(scene, adversary), 0)]
     steps = list(adversary)
     if len(steps) != rollout_steps(scene):

@@ -18,6 +18,7 @@ from counterscene_env.metrics.common import (
     adversary_tenures,
     horizon_steps,
     nan_mean,
+    one_agent,
     rollout_steps,
 )
 from counterscene_env.metrics.realism import (
@@ -61,7 +62,7 @@ def horizon_values(record: dict, second: str) -> dict:
 
 def _latest_adversary(sim: Scene, adversary) -> str | None:
     """The id of the adversary at the last rollout step that had one (None: none)."""
-    if adversary is not None and not isinstance(adversary, (str, int, np.integer)):
+    if adversary is not None and not one_agent(adversary):
         adversary = next((a for a in reversed(list(adversary)) if a is not None), None)
     return None if adversary is None else str(sim.agent_ids[adversary_index(sim, adversary)])
 
