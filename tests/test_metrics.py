@@ -275,6 +275,32 @@ def test_car_leaving_the_road_known_orr(road):
     assert res["per_second"]["10"]["ORR"] == pytest.approx(0.25)
 
 
+def test_the_logs_own_off_road_share_is_the_reference_for_the_rollouts(road):
+    # A car parked in a lot the map lacks (off the road in the log and the rollout alike), and
+    # a car that the rollout drives off the road for the second half where its log stays on.
+    steps = HIST + 100
+    x = 10 + 0.5 * np.arange(steps)
+    log = np.zeros((3, steps, 2))
+    log[0, :, 0] = x  # the ego, on the road
+    log[1] = 50.0, 20.0  # parked off the road
+    log[2, :, 0], log[2, :, 1] = x, 4.0
+    ids = ["ego", "parked", "mover"]
+    factual = make_scene(road, log, ids=ids)
+    sim_pos = log.copy()
+    sim_pos[2, HIST + 47 : HIST + 50, 1] = 7.0, 11.0, 15.0  # off from 6 m, 4 m a step
+    sim_pos[2, HIST + 50 :, 1] = 20.0
+    sim = make_scene(road, sim_pos, ids=ids)
+    res = metrics.evaluate_scene(sim, factual)
+    assert res["orr_log"] == pytest.approx(1 / 3)  # the parked car's 100 of 300 steps
+    assert res["orr"] == pytest.approx(153 / 300)
+    assert res["orr_parked"] == 1.0
+    assert res["orr_moving_log"] == 0.0
+    assert res["orr_moving"] == pytest.approx(53 / 200)
+    alone = metrics.evaluate_scene(sim)  # no log: no reference
+    assert math.isnan(alone["orr_log"]) and math.isnan(alone["orr_moving_log"])
+    assert alone["orr"] == res["orr"]
+
+
 # ---------------------------------------------------------------------- ADE / FDE
 def ade_pair(road):
     """A factual log and a sim whose non-ego cars are 1 m off it (the ego 5 m: not scored)."""

@@ -363,9 +363,16 @@ def _print_stress(args: argparse.Namespace, config, summary: dict, times: dict) 
     print(
         f"episode CR {fmt(summary['cr'])}, ego-adversary CR {fmt(summary['cr_ego_adversary'])}, "
         f"non-ego CR {fmt(summary['cr_non_ego'])} (not in the log "
-        f"{fmt(summary['cr_non_ego_new'])}), ORR {fmt(summary['orr'])}, "
+        f"{fmt(summary['cr_non_ego_new'])}), "
         f"mean min TTC {fmt(summary['mean_min_ttc'])} s, min clearance to adversary "
         f"{fmt(summary['mean_min_clearance_adversary'])} m, fallbacks {summary['fallbacks']}"
+    )
+    # A real map lacks the car parks and driveways where logged cars stand: the log's own
+    # positions on the same map are the reference for the simulation's off-road share.
+    print(
+        f"off the road: ORR {fmt(summary['orr'])} (the log itself "
+        f"{fmt(summary['orr_log'])}), moving vehicles {fmt(summary['orr_moving'])} (the log "
+        f"itself {fmt(summary['orr_moving_log'])})"
     )
     if summary["episodes_cut_at_log_end"]:
         print(f"{summary['episodes_cut_at_log_end']} episodes ended with their log (short logs)")

@@ -36,6 +36,8 @@ SCENE_KEYS = (
     "orr",
     "orr_parked",
     "orr_moving",
+    "orr_log",
+    "orr_moving_log",
     "min_ttc",
     "min_clearance_adversary",
     "ego_peak_deceleration",

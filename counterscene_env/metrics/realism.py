@@ -65,13 +65,17 @@ def off_road_rate_of(
     horizon: float | None,
     include_ego: bool,
     rows: np.ndarray | None = None,
+    valid: np.ndarray | None = None,
 ) -> float:
     """ORR from precomputed :func:`off_road_steps`, over the vehicles among ``rows`` ([N] bool;
-    None: all)."""
+    None: all), at the steps where ``valid`` ``[N, T_roll]`` (None: ``scene``'s own rollout
+    validity; :func:`logged_off_road_steps` gives the log's)."""
     veh = scene.vehicle_mask.copy() if rows is None else scene.vehicle_mask & rows
     if not include_ego:
         veh[scene.ego_index] = False
-    mask = scene.valid[:, rollout_slice(scene)] & in_horizon(scene, horizon)[None] & veh[:, None]
+    if valid is None:
+        valid = scene.valid[:, rollout_slice(scene)]
+    mask = valid & in_horizon(scene, horizon)[None] & veh[:, None]
     n = mask.sum()
     return float((off & mask).sum() / n) if n else math.nan
 
@@ -122,6 +126,19 @@ def logged_rollout(sim: Scene, factual: Scene) -> tuple[np.ndarray, np.ndarray, 
     yaw[:, :avail] = factual.yaws[rows, start : start + avail]
     ok[:, :avail] = factual.valid[rows, start : start + avail]
     return pos, yaw, ok
+
+
+def logged_off_road_steps(sim: Scene, factual: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """The factual log's own off-road steps on ``sim``'s map, row by row of ``sim``
+    (:func:`logged_rollout` aligns the two): the reference for the simulation's ORR, since a
+    real map lacks the car parks and driveways where logged cars stand.
+
+    Returns:
+        ``[N_sim, T_roll]`` bool off the road, and ``[N_sim, T_roll]`` bool where the log has
+        the agent.
+    """
+    p_fac, _, ok_fac = logged_rollout(sim, factual)
+    return sim.road.off_road(p_fac) & ok_fac, ok_fac
 
 
 def displacement_steps(sim: Scene, factual: Scene) -> tuple[np.ndarray, np.ndarray]:

@@ -24,6 +24,7 @@ from counterscene_env.metrics.common import (
 from counterscene_env.metrics.realism import (
     ade_fde_of,
     displacement_steps,
+    logged_off_road_steps,
     non_ego_vehicles,
     off_road_rate_of,
     off_road_steps,
@@ -100,7 +101,9 @@ def evaluate_scene(
         collisions the simulation made; NaN without ``factual``), ``cr_ego_adversary``, ``hbr_ego``,
         ``hbr_all``, ``hbr_paper``, ``orr`` (fractions; also split into ``orr_parked`` over the
         vehicles parked for the whole rollout, :func:`parked_agents`, and ``orr_moving`` over
-        the others), ``min_ttc`` (s), ``min_clearance_adversary`` (m) and
+        the others), ``orr_log`` and ``orr_moving_log`` (the same vehicles' logged positions
+        over the same steps, on the same map: a real map's off-road share of the log itself;
+        NaN without ``factual``), ``min_ttc`` (s), ``min_clearance_adversary`` (m) and
         ``ego_peak_deceleration`` (m/s^2, the ego's strongest braking over the rollout from the
         same samples HBR thresholds; 0 if it never slows, NaN without samples).
     """
@@ -114,13 +117,16 @@ def evaluate_scene(
     ego_acc = acc[e][mask[e]]
     peak_decel = max(0.0, -float(ego_acc.min())) if ego_acc.size else math.nan
     dist = ok = None
-    cr_non_ego_new = math.nan
+    cr_non_ego_new = orr_log = orr_moving_log = math.nan
     if factual is not None:
         dist, ok = displacement_steps(sim, factual)
         rows = non_ego_vehicles(sim)
         dist, ok = dist[rows], ok[rows]
         new = overlaps & ~logged_overlap_pairs(sim, factual)[None]
         cr_non_ego_new = float(any_collision(new, e, include_ego=False).any())
+        off_log, ok_log = logged_off_road_steps(sim, factual)
+        orr_log = off_road_rate_of(sim, off_log, None, True, valid=ok_log)
+        orr_moving_log = off_road_rate_of(sim, off_log, None, True, ~parked, ok_log)
 
     tenures = [] if adversary is None else adversary_tenures(sim, adversary)
     adversary_ids = [str(sim.agent_ids[row]) for row, _ in tenures]
@@ -169,6 +175,8 @@ def evaluate_scene(
         "orr": off_road_rate_of(sim, off, None, include_ego=True),
         "orr_parked": off_road_rate_of(sim, off, None, True, parked),
         "orr_moving": off_road_rate_of(sim, off, None, True, ~parked),
+        "orr_log": orr_log,
+        "orr_moving_log": orr_moving_log,
         "min_ttc": min_ttc_ego(sim),
         "min_clearance_adversary": clearance,
         "ego_peak_deceleration": peak_decel,

@@ -90,6 +90,13 @@ EPISODE_METRICS = {
         ),
         EpisodeMetric("hbr_ego", "HBR (ego brakes < -3 m/s²)", "rate", True, field("hbr_ego")),
         EpisodeMetric("orr", "ORR", "fraction", False, field("orr")),
+        EpisodeMetric(
+            "orr_log",
+            "ORR of the log itself (same vehicles and map)",
+            "fraction",
+            False,
+            field("orr_log"),
+        ),
         EpisodeMetric("ade", "ADE (whole rollout)", "m", False, last_second("ADE")),
         EpisodeMetric(
             "min_ttc", "min TTC (episodes with a projected conflict)", "s", False, _finite_ttc

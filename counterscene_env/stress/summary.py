@@ -37,6 +37,8 @@ def summarize(records: Sequence[dict], config: StressConfig) -> dict:
         "hbr_ego": overall["hbr_ego"],
         "orr": overall["orr"],
         "orr_moving": overall["orr_moving"],
+        "orr_log": overall["orr_log"],
+        "orr_moving_log": overall["orr_moving_log"],
         "mean_min_ttc": float(finite.mean()) if finite.size else math.inf,
         "episodes_without_ttc_conflict": int((~np.isfinite(ttc)).sum()),
         "mean_min_clearance_adversary": overall["min_clearance_adversary"],
