@@ -7,6 +7,8 @@ Moving agents (3 m/s or more now) with their whole 3 s logged, every second of e
 - displacement error by horizon, one sample, the mean of the 6 and constant velocity, split
   along and across the agent's course;
 - the first action token's acceleration (0-0.4 s) against the log's: spread, correlation;
+- by speed now: the log's and one sample's speed change over 3 s (mean, spread,
+  correlation) and the ADE ratio to constant velocity;
 - ADE over 0-3 s with the sample's accelerations over its first ``--tokens`` tokens scaled by
   each ``--scale`` and rolled out again (1: the sample re-rolled from its token means, the
   reference; a diagnosis, not a sampler setting: how much of the
@@ -18,6 +20,7 @@ Moving agents (3 m/s or more now) with their whole 3 s logged, every second of e
 from __future__ import annotations
 
 import argparse
+import itertools
 
 import numpy as np
 import torch
@@ -31,6 +34,7 @@ from counterscene_env.world_model.evaluate import MOVING_SPEED, constant_velocit
 HORIZON = 30  # steps (3 s at 10 Hz)
 SAMPLES = 6
 REPORTED = (1, 2, 4, 9, 19, 29)  # steps: 0.2, 0.3, 0.5, 1, 2, 3 s
+SPEED_BINS = (3.0, 6.0, 9.0, 12.0, 16.0, 40.0)  # m/s, speed now
 
 
 def frame_errors(d: np.ndarray, course: float) -> tuple[np.ndarray, np.ndarray]:
@@ -58,7 +62,7 @@ def measure(model, scenes, seed: int, tokens: int, scales) -> dict[str, list]:
     s = c.action_stride
     jobs = window_jobs(scenes, c.history_steps, 10, HORIZON)
     g = torch.Generator().manual_seed(seed)
-    keys = ("one", "mean", "cv", "al", "ac", "cal", "cac", "first", "logged")
+    keys = ("one", "mean", "cv", "al", "ac", "cal", "cac", "first", "logged", "speed")
     rows: dict = {k: [] for k in keys} | {f: [] for f in scales}
     for _, batch in window_batches(model, scenes, jobs):
         with torch.no_grad():
@@ -78,6 +82,13 @@ def measure(model, scenes, seed: int, tokens: int, scales) -> dict[str, list]:
         for b, k in zip(*np.nonzero(moving), strict=True):
             truth = future[b, k]
             d_one, d_cv = xy[b, 0, k] - truth, cv[b, k] - truth
+            # speed now, and the 3 s speed change of the log and of the first sample [m/s]
+            v0 = float(st[b, k, 3])
+            dv = (
+                batch["future"][b, k, HORIZON - 1, 3].item(),
+                traj[b, 0, k, HORIZON - 1, 3].item(),
+            )
+            rows["speed"].append((v0, dv[0] - v0, dv[1] - v0))
             rows["one"].append(np.linalg.norm(d_one, axis=-1))
             rows["mean"].append(np.linalg.norm(xy[b, :, k].mean(0) - truth, axis=-1))
             rows["cv"].append(np.linalg.norm(d_cv, axis=-1))
@@ -116,6 +127,19 @@ def report(rows: dict, tokens: int, scales) -> None:
         f"  rms error: one sample {rms(fa[:, 0] - la):.2f}, mean of {SAMPLES} "
         f"{rms(fa.mean(1) - la):.2f}, zero (constant speed) {rms(la):.2f}"
     )
+    v = np.array(rows["speed"])  # [n, 3]: speed now, 3 s change logged, one sample's
+    print("by speed now: the 3 s speed change, log and one sample (mean / spread, correlation)")
+    for lo, hi in itertools.pairwise(SPEED_BINS):
+        m = (v[:, 0] >= lo) & (v[:, 0] < hi)
+        if m.sum() < 5:
+            continue
+        log, one = v[m, 1], v[m, 2]
+        print(
+            f"  {lo:2.0f}-{hi:2.0f} m/s, {m.sum():4d}: log {log.mean():+.2f} / {log.std():.2f}, "
+            f"sample {one.mean():+.2f} / {one.std():.2f}, correlation "
+            f"{np.corrcoef(log, one)[0, 1]:+.2f}; ADE 0-3 s "
+            f"{r['one'][m].mean() / r['cv'][m].mean():.2f}x constant velocity"
+        )
     ade_one, ade_cv = r["one"].mean(), r["cv"].mean()
     print(f"ADE 0-3 s: one sample {ade_one:.3f} m ({ade_one / ade_cv:.3f}x constant velocity)")
     for f in scales:
