@@ -82,13 +82,11 @@ def measure(model, scenes, seed: int, tokens: int, scales) -> dict[str, list]:
         for b, k in zip(*np.nonzero(moving), strict=True):
             truth = future[b, k]
             d_one, d_cv = xy[b, 0, k] - truth, cv[b, k] - truth
-            # speed now, and the 3 s speed change of the log and of the first sample [m/s]
+            # speed now, and the speed 3 s later of the log and of the first sample [m/s]
             v0 = float(st[b, k, 3])
-            dv = (
-                batch["future"][b, k, HORIZON - 1, 3].item(),
-                traj[b, 0, k, HORIZON - 1, 3].item(),
-            )
-            rows["speed"].append((v0, dv[0] - v0, dv[1] - v0))
+            v_log = batch["future"][b, k, HORIZON - 1, 3].item()
+            v_one = traj[b, 0, k, HORIZON - 1, 3].item()
+            rows["speed"].append((v0, v_log - v0, v_one - v0))
             rows["one"].append(np.linalg.norm(d_one, axis=-1))
             rows["mean"].append(np.linalg.norm(xy[b, :, k].mean(0) - truth, axis=-1))
             rows["cv"].append(np.linalg.norm(d_cv, axis=-1))
