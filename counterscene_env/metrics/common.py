@@ -19,8 +19,9 @@ HARD_BRAKE_THRESHOLD = -3.0
 PER_SECOND_KEYS = ("ADE", "FDE", "ORR", "HBR", "CR")
 
 #: Further per-second keys of :func:`evaluate_scene` (``counterscene paper-tables``): the
-#: ego-adversary CR within h, and the ego's strongest braking within h [m/s^2].
-EXTRA_PER_SECOND_KEYS = ("CR_adv", "DEC")
+#: ego-adversary CR within h, the ego's strongest braking within h [m/s^2], and the log's own
+#: ORR within h (the same vehicles' logged positions on the same map).
+EXTRA_PER_SECOND_KEYS = ("CR_adv", "DEC", "ORR_log")
 
 
 #: Whole-rollout keys of :func:`evaluate_scene` (numbers averaged by :func:`aggregate`).

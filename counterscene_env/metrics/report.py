@@ -93,7 +93,8 @@ def evaluate_scene(
         <SCENE_KEYS>}`` where ``adversary_ids`` lists every agent that was the adversary, in
         the order they were first chosen, and ``adversary_id`` is the latest (None: none);
         ``per_second[str(h)]`` holds ``ADE``/``FDE`` (m), ``ORR``, ``HBR`` (= hbr_ego within h),
-        ``CR`` (ego collided at or before h), ``CR_adv`` (with the adversary; NaN without one)
+        ``CR`` (ego collided at or before h), ``ORR_log`` (the log's own ORR within h, as
+        ``orr_log`` below), ``CR_adv`` (with the adversary; NaN without one)
         and ``DEC`` (the ego's strongest braking within h, m/s^2, so ``DEC > x`` is HBR at
         ``-x``) for each h, and the whole-rollout values are
         ``cr``, ``cr_all_agents``, ``cr_non_ego`` (two agents other than the ego overlap),
@@ -116,7 +117,7 @@ def evaluate_scene(
     e = sim.ego_index
     ego_acc = acc[e][mask[e]]
     peak_decel = max(0.0, -float(ego_acc.min())) if ego_acc.size else math.nan
-    dist = ok = None
+    dist = ok = off_log = ok_log = None
     cr_non_ego_new = orr_log = orr_moving_log = math.nan
     if factual is not None:
         dist, ok = displacement_steps(sim, factual)
@@ -151,6 +152,9 @@ def evaluate_scene(
             "ADE": ade,
             "FDE": fde,
             "ORR": off_road_rate_of(sim, off, h, include_ego=True),
+            "ORR_log": math.nan
+            if off_log is None
+            else off_road_rate_of(sim, off_log, h, True, valid=ok_log),
             "HBR": float(flags[e][brake_in].any()) if brake_in.any() else math.nan,
             "CR": float(ego_hits[steps < n].any()),
             "CR_adv": math.nan if adv_hits is None else float(adv_hits[steps < n].any()),

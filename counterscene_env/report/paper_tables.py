@@ -13,7 +13,8 @@ Tables (rows: ``stress.paper.TABLE_ROWS``; metrics: :data:`METRICS`):
 Under every table, the whole-episode rates (:data:`EPISODE_RATES`): the ego's collisions over
 the whole rollout, and collisions between two other agents that the log does not have.
 
-Metrics. ADE, FDE (m) and ORR as in ``metrics``; two CRs, named: **CR ego-adversary** (the
+Metrics. ADE, FDE (m) and ORR as in ``metrics``, with the log's own ORR beside it (its
+logged positions on the same map); two CRs, named: **CR ego-adversary** (the
 paper's main text: the ego collides with the selected adversary; an episode without an
 adversary counts as no such collision) and **CR ego-any** (the paper's appendix and
 ``docs/metrics.md``: the ego collides with anyone); two HBRs on the ego's signed longitudinal
@@ -48,6 +49,9 @@ METRICS = {
     "ADE": ("ADE", "m", False),
     "FDE": ("FDE", "m", False),
     "ORR": ("ORR", "fraction", False),
+    # The same vehicles' logged positions over the same steps on the same map: a real map
+    # lacks the car parks and driveways where logged cars stand, so ORR reads against this.
+    "ORR_log": ("ORR of the log", "fraction", False),
     "HBR3": ("HBR -3", "rate", True),
     "HBR6": ("HBR -6", "rate", True),
     "CR_adv": ("CR ego-adversary", "rate", True),
