@@ -45,8 +45,7 @@ def main() -> None:
         seeds = [args.seed + k + j for j in range(len(chunk))]
         play_batch(loop, chunk, seeds, [make_planner("idm") for _ in chunk])
         for ep in loop.episodes:
-            ids = ep.adversary_ids()
-            per_episode.append(len({a for a in ids if a is not None}))
+            adversaries = set()
             for step in ep.records[1:]:  # the rollout steps' infos, the first ego's
                 info = step[0]
                 steps += 1
@@ -54,7 +53,9 @@ def main() -> None:
                     without += 1
                     reasons[info["fallback"]] += 1
                 else:
+                    adversaries.add(info["adversary"])
                     types[info["conflict_type"]] += 1
+            per_episode.append(len(adversaries))
     print(
         f"{args.scenario}, {args.selector}, source {args.source}: {len(per_episode)} episodes, "
         f"{np.mean(per_episode):.1f} adversaries per episode; "
