@@ -73,6 +73,14 @@ def add_paper_tables(sub) -> None:
         help="s of log after its start a real scene needs to be seated (default "
         f"{REAL_MIN_FUTURE:g}: the real-logs table's first horizon; 0 seats every scene)",
     )
+    pp.add_argument(
+        "--rollouts",
+        type=int,
+        default=1,
+        metavar="K",
+        help="candidate rollouts per episode in every row (the paper's protocol: 16): the one "
+        "most severe for the ego is kept, at K times the cost (default 1)",
+    )
     add_model_flag(pp)
     pp.add_argument(
         "--set",
@@ -109,7 +117,7 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
     from counterscene_env.scene.sources import check_spec
     from counterscene_env.stress import paper
 
-    for flag in ("episodes", "workers", "egos"):
+    for flag in ("episodes", "workers", "egos", "rollouts"):
         if getattr(args, flag) < 1:
             raise ValueError(f"--{flag} must be >= 1, got {getattr(args, flag)}")
     base = parse_overrides(args.set)
@@ -138,6 +146,7 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         base=base,
         egos=args.egos,
         min_future=args.min_future,
+        rollouts=args.rollouts,
         progress=not args.quiet,
         on_row=on_row,
         run=not args.tables_only,
@@ -164,6 +173,7 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         "seed": args.seed,
         "egos": args.egos,
         "min_future": args.min_future,
+        "rollouts": args.rollouts,
         "model": args.model,
         "settings": base,
         "tables_only": args.tables_only,

@@ -89,6 +89,16 @@ def add_stress(sub) -> None:
         "(default 0: every scene; an episode ends with its log)",
     )
     st.add_argument(
+        "--rollouts",
+        type=int_at_least(1),
+        default=1,
+        metavar="K",
+        help="candidate rollouts per episode (the paper's protocol: 16): each episode runs "
+        "under K closed-loop seeds and the one most severe for the ego is kept (a collision "
+        "first), at K times the cost "
+        "(default 1)",
+    )
+    st.add_argument(
         "--workers",
         type=int,
         help="processes to run batches in, one torch thread each (default 1; --backend ray: "
@@ -193,6 +203,7 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         batch=args.batch,
         egos=args.egos,
         min_future=args.min_future,
+        rollouts=args.rollouts,
     )
     env_config = _policy_env_config(args, config.is_sb3)
     model = None if config.is_sb3 else load_model(args.model)  # a bad --model fails here
@@ -353,6 +364,11 @@ def _print_stress(args: argparse.Namespace, config, summary: dict, times: dict) 
         f"{summary['episodes']} episodes of {args.scenario}, planner {args.planner}, selector "
         f"{sim.selector}, guidance {sim.guidance} (source {sim.selection_source}, "
         f"{sim.num_samples} samples)"
+        + (
+            f", the most severe of {config.rollouts} rollouts per episode"
+            if config.rollouts > 1
+            else ""
+        )
     )
     print(f"{'':8s}" + "".join(f"{k:>10s}" for k in ("ADE", "FDE", "ORR", "HBR", "CR")))
     for name, row in summary["horizons"].items():

@@ -52,6 +52,7 @@ from counterscene_env.metrics.report import (
     evaluate_scene,
     horizon_values,
     json_safe,
+    severity,
 )
 from counterscene_env.metrics.safety import (
     agent_collision_steps,
@@ -97,5 +98,6 @@ __all__ = [
     "parked_agents",
     "path_speeds",
     "rollout_steps",
+    "severity",
     "wilson_interval",
 ]

@@ -187,6 +187,33 @@ def evaluate_scene(
     }
 
 
+def severity(record: dict) -> tuple[float, ...]:
+    """How bad an episode record is for the ego, as a sort key: smaller is more severe.
+
+    In turn: the ego collided (``cr``), with the adversary (``cr_ego_adversary``), the smallest
+    time to collision (``min_ttc`` s; no projected conflict is inf, the least severe), the
+    smallest clearance to the adversary (``min_clearance_adversary`` m; no adversary ranks
+    after any clearance) and hard braking (``hbr_ego``). A report's worst episodes and a
+    stress run's kept candidate rollout are both ordered by it.
+    """
+
+    def flag(key: str) -> float:
+        v = record.get(key, math.nan)
+        return 0.0 if v is None or math.isnan(v) else float(v)
+
+    def low_first(key: str) -> float:
+        v = record.get(key, math.nan)
+        return math.inf if v is None or math.isnan(v) else float(v)
+
+    return (
+        -flag("cr"),
+        -flag("cr_ego_adversary"),
+        low_first("min_ttc"),
+        low_first("min_clearance_adversary"),
+        -flag("hbr_ego"),
+    )
+
+
 def aggregate(records: Sequence[dict]) -> dict:
     """Average :func:`evaluate_scene` records over scenes, as the paper's tables do.
 

@@ -34,9 +34,9 @@ def stress_argv(run: Run) -> list[str]:
     episodes = run.planned_episodes or len(run.records)
     argv = ["counterscene", "stress", "--scenario", str(ident["scenario"])]
     argv += ["--episodes", str(episodes)]
-    for key in ("seed", "planner", "batch", "egos", "model"):
+    for key in ("seed", "planner", "batch", "egos", "min_future", "rollouts", "model"):
         if key in ident:
-            argv += [f"--{key}", str(ident[key])]
+            argv += ["--" + key.replace("_", "-"), str(ident[key])]
     sim = ident.get("sim", {})
     for f in dataclasses.fields(SimConfig):
         if f.name not in sim or sim[f.name] is None:

@@ -92,6 +92,11 @@ def markdown(built: dict, meta: dict, seconds: dict[str, dict[str, float]]) -> s
             if meta.get("min_future") and any("real" in t for t in built["tables"].values())
             else ""
         )
+        + (
+            f", each episode the most severe of {meta['rollouts']} candidate rollouts"
+            if meta.get("rollouts", 1) > 1
+            else ""
+        )
         + (f", closed-loop settings {meta['settings']}." if meta.get("settings") else "."),
         "Values: `value [95 % interval]`; rates and ORR in %, ADE and FDE in m. A single "
         "horizon's rate has a Wilson interval, means and averages over several seconds a "

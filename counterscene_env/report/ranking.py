@@ -1,10 +1,9 @@
 """The worst episodes of a run, most severe first.
 
-Severity is ordered by, in turn: the ego collided (``cr``), it collided with the adversary
-(``cr_ego_adversary``), the smallest time to collision (``min_ttc``, s; no projected conflict
-is inf, the least severe), the smallest clearance to the adversary (``min_clearance_adversary``,
-m; no adversary ranks after any clearance) and hard braking (``hbr_ego``). Ties keep episode
-order, so the ranking of a run is fixed.
+Severity is :func:`counterscene_env.metrics.severity`: in turn the ego collided (``cr``), it
+collided with the adversary (``cr_ego_adversary``), the smallest time to collision
+(``min_ttc``), the smallest clearance to the adversary (``min_clearance_adversary``) and hard
+braking (``hbr_ego``). Ties keep episode order, so the ranking of a run is fixed.
 """
 
 from __future__ import annotations
@@ -12,26 +11,12 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+from counterscene_env.metrics import severity
+
 
 def severity_key(record: dict) -> tuple[float, ...]:
     """Sort key of an episode record: smaller is more severe (module docstring)."""
-
-    def flag(key: str) -> float:
-        v = record.get(key, math.nan)
-        return 0.0 if v is None or math.isnan(v) else float(v)
-
-    def low_first(key: str) -> float:
-        v = record.get(key, math.nan)
-        return math.inf if v is None or math.isnan(v) else float(v)
-
-    return (
-        -flag("cr"),
-        -flag("cr_ego_adversary"),
-        low_first("min_ttc"),
-        low_first("min_clearance_adversary"),
-        -flag("hbr_ego"),
-        float(record["episode"]),
-    )
+    return (*severity(record), float(record["episode"]))
 
 
 def worst_episodes(records: Sequence[dict], k: int | None = None) -> list[dict]:

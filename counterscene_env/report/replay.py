@@ -2,8 +2,9 @@
 
 The closed loop is deterministic given the scenes and seeds of a batch (``sim.ClosedLoop``:
 each episode has its own generators), and a stress run records both (``scene_seed`` or the
-episode index, and ``seed``). An episode is replayed in its batch (:func:`batch_of`) exactly
-as ``stress.run_batch`` runs it, and the replay's metrics are checked against the record.
+episode index, and ``seed``; with candidate rollouts, the ``rollout`` kept). An episode is
+replayed in its batch (:func:`batch_of`) exactly as ``stress.run_batch`` runs it, and the
+replay's metrics are checked against the record.
 
 Planners ``sb3:PATH.zip`` run through ``CounterScene-v0`` (``stress.run_policy_episodes``)
 and are not replayed here.
@@ -27,6 +28,7 @@ from counterscene_env.scene.sources import scenes_for
 from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.stress import SB3_PREFIX
 from counterscene_env.stress.episodes import play_batch
+from counterscene_env.stress.rollouts import rollout_seed
 from counterscene_env.world_model.model import WorldModel
 
 #: Record fields a replay must reproduce for its video to be the recorded episode.
@@ -139,7 +141,9 @@ def batch_scenes(run: Run, episodes: range) -> list[Scene]:
 
 def replay_batch(model: WorldModel, run: Run, episodes: range, keep: Sequence[int]) -> list[Replay]:
     """Re-simulate the batch ``episodes`` of ``run`` step by step as ``stress.run_batch``
-    runs it; one :class:`Replay` per episode of ``keep`` (in that order).
+    runs it; one :class:`Replay` per episode of ``keep`` (in that order). A run with
+    candidate rollouts (``StressConfig.rollouts``) played its batch once per candidate; an
+    episode is replayed in the play of the candidate it kept (its ``rollout``).
 
     Raises:
         ValueError: the run cannot be replayed (:func:`can_replay`), its settings are not
@@ -149,19 +153,24 @@ def replay_batch(model: WorldModel, run: Run, episodes: range, keep: Sequence[in
     if reason:
         raise ValueError(reason)
     scenes = batch_scenes(run, episodes)
-    seeds = [int(run.records[i]["seed"]) for i in episodes]
     loop = ClosedLoop(model, SimConfig.from_mapping(run.sim()))
-    planners = [make_planner(str(run.identity.get("planner", "idm"))) for _ in scenes]
-    rows = [episodes.index(e) for e in keep]
-    frames: dict[int, list[Frame]] = {b: [] for b in rows}
+    replays = {}
+    for k in sorted({int(run.records[e].get("rollout", 0)) for e in keep}):
+        # Every episode of the batch ran candidate k together.
+        seeds = [rollout_seed(int(run.records[i]["seed"]), k) for i in episodes]
+        planners = [make_planner(str(run.identity.get("planner", "idm"))) for _ in scenes]
+        rows = [episodes.index(e) for e in keep if int(run.records[e].get("rollout", 0)) == k]
+        frames: dict[int, list[Frame]] = {b: [] for b in rows}
 
-    def draw(moved: list[bool]) -> None:
+        def draw(moved: list[bool], rows=rows, frames=frames) -> None:
+            for b in rows:
+                if moved[b]:  # a finished episode (a short log) stays on its last frame
+                    frames[b].append(_frame(loop, b))
+
+        play_batch(loop, scenes, seeds, planners, after=draw)
         for b in rows:
-            if moved[b]:  # a finished episode (a short log) stays on its last frame
-                frames[b].append(_frame(loop, b))
-
-    play_batch(loop, scenes, seeds, planners, after=draw)
-    return [_replay(loop, b, scenes[b], run.records[episodes[b]], frames[b]) for b in rows]
+            replays[b] = _replay(loop, b, scenes[b], run.records[episodes[b]], frames[b])
+    return [replays[episodes.index(e)] for e in keep]
 
 
 def _replay(loop: ClosedLoop, b: int, scene: Scene, record: dict, frames: list[Frame]) -> Replay:

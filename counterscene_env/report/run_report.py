@@ -221,9 +221,14 @@ def worst(
 
 def _seeds(record: dict) -> str:
     """``scene S, noise N``: the generated scene's seed (stored scenes have none) and the
-    episode's closed-loop seed."""
+    episode's closed-loop seed (with candidate rollouts, the kept candidate's)."""
     scene_seed = record.get("scene_seed")
     scene = "" if scene_seed is None else f"scene {scene_seed}, "
+    if "rollout_seed" in record:
+        return (
+            f"{scene}noise {record['rollout_seed']} "
+            f"(candidate {record['rollout']} of {record['rollouts']})"
+        )
     return f"{scene}noise {record['seed']}"
 
 

@@ -35,6 +35,10 @@ class StressConfig:
         min_future: s of log after "now" a stored scene needs to be seated (shorter ones are
             skipped: an episode on them would end before anything could happen); 0 seats
             every scene. Generated roads always record a whole episode.
+        rollouts: candidate rollouts per episode (the paper's protocol: 16): each episode is
+            run under this many closed-loop seeds and the run most severe for the ego is kept
+            (``stress.rollouts``; docs/closed_loop.md, "Candidate rollouts"). 1: the episode
+            as its seed runs it.
     """
 
     scenario: str
@@ -45,6 +49,7 @@ class StressConfig:
     batch: int = 4
     egos: int = 1
     min_future: float = 0.0
+    rollouts: int = 1
 
     def __post_init__(self) -> None:
         if self.episodes < 1:
@@ -53,6 +58,8 @@ class StressConfig:
             raise ValueError(f"batch must be >= 1, got {self.batch}")
         if self.egos < 1:
             raise ValueError(f"egos must be >= 1, got {self.egos}")
+        if self.rollouts < 1:
+            raise ValueError(f"rollouts must be >= 1, got {self.rollouts}")
         if not (math.isfinite(self.min_future) and self.min_future >= 0):
             raise ValueError(f"min_future must be a finite number of s >= 0, got {self.min_future}")
         check_spec(self.scenario)
@@ -92,6 +99,8 @@ def run_identity(config: StressConfig, model: str, env_config: dict | None = Non
         out.pop("egos")  # the recorded egos: as runs from before the key, which still resume
     if out["min_future"] == 0:
         out.pop("min_future")  # every scene: as runs from before the key
+    if out["rollouts"] == 1:
+        out.pop("rollouts")  # one rollout per episode: as runs from before the key
     out["model"] = model
     if env_config:
         out["env_config"] = env_config

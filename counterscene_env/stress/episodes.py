@@ -25,6 +25,7 @@ from counterscene_env.scene.sources import is_generated, scenes_for
 from counterscene_env.sim import ClosedLoop
 from counterscene_env.stress.config import StressConfig
 from counterscene_env.stress.log import EpisodeLog
+from counterscene_env.stress.rollouts import keep_most_severe, rollout_seed
 from counterscene_env.world_model.checkpoint import load_model
 from counterscene_env.world_model.model import WorldModel
 
@@ -139,9 +140,11 @@ class BatchRunner:
         self.loop = ClosedLoop(model, config.sim)
 
     def __call__(self, first: int, scenes: Sequence[Scene]) -> list[dict]:
-        seeds = [self.config.seed + first + k for k in range(len(scenes))]
-        planners = [self.factory() for _ in scenes]
-        return run_batch(self.loop, scenes, seeds, planners, first=first)
+        def run(seeds: list[int]) -> list[dict]:
+            planners = [self.factory() for _ in scenes]
+            return run_batch(self.loop, scenes, seeds, planners, first=first)
+
+        return candidate_rollouts(run, self.config, first, len(scenes))
 
     def close(self) -> None:
         pass
@@ -191,13 +194,18 @@ class PolicyRunner:
         probe.close()
 
     def __call__(self, first: int, scenes: Sequence[Scene]) -> list[dict]:
+        return candidate_rollouts(
+            lambda seeds: self._run(first, scenes, seeds), self.config, first, len(scenes)
+        )
+
+    def _run(self, first: int, scenes: Sequence[Scene], seeds: list[int]) -> list[dict]:
+        """The batch's episodes with closed-loop seeds ``seeds``, one record each."""
         from gymnasium.vector import AutoresetMode
         from gymnasium.vector.utils import iterate
 
         from counterscene_env.envs.vector import CounterSceneVectorEnv
 
         B = len(scenes)
-        seeds = [self.config.seed + first + k for k in range(B)]
         start = time.perf_counter()
         venv = CounterSceneVectorEnv(B, self.settings, autoreset_mode=AutoresetMode.DISABLED)
         obs, _ = venv.reset(seed=seeds, options={"scenes": list(scenes), "episode_seeds": seeds})
@@ -218,6 +226,22 @@ class PolicyRunner:
 
     def close(self) -> None:
         pass
+
+
+def candidate_rollouts(
+    run: Callable[[list[int]], list[dict]], config: StressConfig, first: int, size: int
+) -> list[dict]:
+    """The records of episodes ``first .. first + size``: ``run(seeds)`` plays the batch with
+    those closed-loop seeds (the episodes' own, ``config.seed + i``); with
+    ``config.rollouts`` K > 1 it plays it K times, candidate k with
+    ``rollouts.rollout_seed(seed, k)``, and each episode keeps its most severe
+    candidate for the ego (``rollouts.keep_most_severe``)."""
+    seeds = [config.seed + first + b for b in range(size)]
+    if config.rollouts == 1:
+        return run(seeds)
+    return keep_most_severe(
+        [run([rollout_seed(s, k) for s in seeds]) for k in range(config.rollouts)]
+    )
 
 
 def make_runner(

@@ -152,11 +152,13 @@ def row_config(
     base: dict | None = None,
     egos: int = 1,
     min_future: float = REAL_MIN_FUTURE,
+    rollouts: int = 1,
 ) -> StressConfig:
     """The stress run of one row on one scenario; ``base``: closed-loop settings shared by
     every row (``SimConfig`` keys other than :data:`ROW_KEYS`); ``egos``: ego choices per
     real scene (``StressConfig.egos``; generated roads draw a new scene every episode);
-    ``min_future``: s of log a real scene needs after its start (``StressConfig.min_future``)."""
+    ``min_future``: s of log a real scene needs after its start (``StressConfig.min_future``);
+    ``rollouts``: candidate rollouts per episode (``StressConfig.rollouts``)."""
     base = dict(base or {})
     fixed = sorted(set(base) & set(ROW_KEYS))
     if fixed:
@@ -170,6 +172,7 @@ def row_config(
         batch=batch,
         egos=egos,
         min_future=min_future,
+        rollouts=rollouts,
     )
 
 
@@ -193,6 +196,7 @@ def run_rows(
     base: dict | None = None,
     egos: int = 1,
     min_future: float = REAL_MIN_FUTURE,
+    rollouts: int = 1,
     progress: bool = True,
     on_row: Callable[[str, str, int], None] | None = None,
     run: bool = True,
@@ -201,7 +205,8 @@ def run_rows(
     """Run (or finish) every row each scenario needs; ``{scenario dir: {row: records}}``.
 
     ``tables``: the generated roads' tables to run (:func:`tables_for`); real logs always
-    run the real-logs table.
+    run the real-logs table. ``rollouts``: candidate rollouts per episode in every row
+    (``StressConfig.rollouts``).
 
     ``on_row(scenario dir, row, episodes already done)`` is called before each row runs.
     Every config is checked before the first episode runs, so a bad spec or planner fails
@@ -216,7 +221,7 @@ def run_rows(
     for spec in specs:
         for name in rows_for(spec, tables):
             config = row_config(
-                spec, ROWS[name], episodes, seed, planner, batch, base, egos, min_future
+                spec, ROWS[name], episodes, seed, planner, batch, base, egos, min_future, rollouts
             )
             if config.is_sb3:
                 raise ValueError("paper-tables runs the built-in planners (idm, log, ...)")
