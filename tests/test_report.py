@@ -63,17 +63,23 @@ def episode(template: dict, i: int, **values) -> dict:
 
 
 def write_run(
-    directory: Path, records: list[dict], planner: str = "idm", guidance: str = "full"
+    directory: Path,
+    records: list[dict],
+    planner: str = "idm",
+    guidance: str = "full",
+    scenario: str = "intersection",
+    **run,
 ) -> Path:
     """A run directory written by the stress writers themselves (run.json,
-    episodes.jsonl, metrics.json)."""
+    episodes.jsonl, metrics.json); ``run``: further ``StressConfig`` fields."""
     config = StressConfig(
-        "intersection",
+        scenario,
         episodes=len(records),
         seed=100,
         planner=planner,
         sim=SimConfig(guidance=guidance),
         batch=2,
+        **run,
     )
     log = EpisodeLog(
         directory, run_identity(config, "default"), summarize=lambda r: summarize(r, config)
@@ -185,6 +191,30 @@ def test_command_txt_reruns_the_same_run(template, tmp_path):
     )  # fmt: skip
     assert args.episodes == 8 and args.out == str(run) and args.resume
     assert asdict(SimConfig(**parsed_fields(args, SimConfig))) == ident["sim"]
+
+
+def test_command_txt_keeps_the_runs_stored_scene_filter_and_candidate_rollouts(
+    template, tmp_path, generated
+):
+    """A run on stored scenes with --min-future and --rollouts: the rebuilt command has both,
+    so that it resumes the run rather than being refused as another one."""
+    from counterscene_env.scene.shards import save_scenes
+
+    shard = tmp_path / "scenes.npz"
+    save_scenes([generated["merge"]], shard)
+    run = write_run(
+        tmp_path / "run", mixed(template), scenario=str(shard), min_future=1.5, rollouts=3
+    )
+    write_report(run, videos=0, progress=False)
+    args = _parser().parse_args(shlex.split((run / "command.txt").read_text().splitlines()[-1])[1:])
+    assert (args.min_future, args.rollouts) == (1.5, 3)
+    ident = json.loads((run / "run.json").read_text())
+    rebuilt = StressConfig(
+        args.scenario, args.episodes, args.seed, args.planner,
+        SimConfig(**parsed_fields(args, SimConfig)), args.batch, args.egos,
+        args.min_future, args.rollouts,
+    )  # fmt: skip
+    assert run_identity(rebuilt, args.model) == ident
 
 
 def test_a_stopped_run_gets_a_report_of_its_finished_episodes(template, tmp_path):

@@ -95,8 +95,7 @@ def add_stress(sub) -> None:
         metavar="K",
         help="candidate rollouts per episode (the paper's protocol: 16): each episode runs "
         "under K closed-loop seeds and the one most severe for the ego is kept (a collision "
-        "first), at K times the cost "
-        "(default 1)",
+        "first), at K times the cost (default 1)",
     )
     st.add_argument(
         "--workers",
