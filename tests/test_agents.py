@@ -95,6 +95,39 @@ def test_sb3_batches_in_a_vector_env_give_the_one_at_a_time_records(
 
 
 @pytest.mark.slow
+def test_sb3_candidate_rollouts_keep_one_of_the_plain_runs(
+    highway_policy, generated, tmp_path, capsys
+):
+    """``--rollouts 2`` with an sb3 policy: the kept record is the plain run of the candidate
+    it names (its seed given as ``--seed``), under the episode's own seed."""
+    from counterscene_env.cli import main
+    from counterscene_env.metrics import severity
+    from counterscene_env.scene.shards import save_scenes
+    from counterscene_env.stress.rollouts import rollout_seed
+
+    shard = tmp_path / "scenes.npz"
+    save_scenes([generated["merge"]], shard)
+    args = ["stress", "--scenario", str(shard), "--episodes", "1", "--duration", "1.5"]
+    args += ["--planner", f"sb3:{highway_policy}", "--samples", "2", "--quiet", "--videos", "0"]
+    assert main([*args, "--seed", "40", "--rollouts", "2", "--out", str(tmp_path / "k2")]) == 0
+    for k in (0, 1):
+        assert (
+            main([*args, "--seed", str(rollout_seed(40, k)), "--out", str(tmp_path / f"c{k}")]) == 0
+        )
+    capsys.readouterr()
+
+    def record(name: str) -> dict:
+        return json.loads((tmp_path / name / "episodes.jsonl").read_text().splitlines()[0])
+
+    kept, plain = record("k2"), [record("c0"), record("c1")]
+    k = kept.pop("rollout")
+    assert (kept.pop("seed"), kept.pop("rollouts")) == (40, 2)
+    assert kept.pop("rollout_seed") == plain[k].pop("seed") == rollout_seed(40, k)
+    assert kept == plain[k]
+    assert severity(plain[k]) <= severity(plain[1 - k])
+
+
+@pytest.mark.slow
 def test_mismatched_policy_spaces_named_in_the_error(highway_policy):
     done = counterscene(
         "stress", "--scenario", "merge", "--episodes", "1", "--duration", "1",
