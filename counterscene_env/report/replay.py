@@ -154,12 +154,13 @@ def replay_batch(model: WorldModel, run: Run, episodes: range, keep: Sequence[in
         raise ValueError(reason)
     scenes = batch_scenes(run, episodes)
     loop = ClosedLoop(model, SimConfig.from_mapping(run.sim()))
+    kept = {e: int(run.records[e].get("rollout", 0)) for e in keep}  # the candidate each kept
     replays = {}
-    for k in sorted({int(run.records[e].get("rollout", 0)) for e in keep}):
+    for k in sorted(set(kept.values())):
         # Every episode of the batch ran candidate k together.
         seeds = [rollout_seed(int(run.records[i]["seed"]), k) for i in episodes]
         planners = [make_planner(str(run.identity.get("planner", "idm"))) for _ in scenes]
-        rows = [episodes.index(e) for e in keep if int(run.records[e].get("rollout", 0)) == k]
+        rows = [episodes.index(e) for e in keep if kept[e] == k]
         frames: dict[int, list[Frame]] = {b: [] for b in rows}
 
         def draw(moved: list[bool], rows=rows, frames=frames) -> None:
