@@ -193,9 +193,11 @@ def test_a_bad_scene_option_changes_nothing(env):
         ({"scene": "merge"}, TypeError),
         ({"episode_seed": "7"}, TypeError),
         ({"episode_seed": -1}, ValueError),
+        ({"selection_seed": 1.5}, TypeError),
+        ({"selection_seed": -1}, ValueError),
         ({"config": ["duration", 1.0]}, TypeError),
     ):
-        with pytest.raises(kind):
+        with pytest.raises(kind, match=next(iter(options))):
             env.reset(options=options)
         assert snapshot(env) == before
 

@@ -97,6 +97,42 @@ def test_a_run_with_rollouts_keeps_the_most_severe_of_its_candidates(shard, gene
     assert first[0]["min_ttc"] == candidates[0][0]["min_ttc"]
 
 
+def test_every_candidate_of_an_episode_has_its_random_adversary(shard, generated):
+    """The protocol varies the noise, not the choice: a ``random`` selector's vehicle is the
+    episode's own in every candidate (not the best of K random vehicles), and a selection seed
+    that is the episode's own leaves the episode as it was."""
+    sim = SimConfig(duration=1.0, num_samples=2, selector="random")
+    config = StressConfig(shard, episodes=2, seed=40, sim=sim, batch=2, rollouts=4)
+    model = load_model("default")
+    runner = BatchRunner(model, config)
+    scenes = [generated["merge"], generated["intersection"]]
+    plain = BatchRunner(model, StressConfig(shard, episodes=2, seed=40, sim=sim, batch=2))(
+        0, scenes
+    )
+    chosen = [r["adversary_id"] for r in plain]
+    assert all(a is not None for a in chosen)
+    assert [r["adversary_id"] for r in runner(0, scenes)] == chosen
+
+    def adversaries(k: int, shared: bool) -> list:
+        seeds = [rollout_seed(40, k), rollout_seed(41, k)]
+        planners = [make_planner("idm") for _ in scenes]
+        records = run_batch(runner.loop, scenes, seeds, planners, 0, [40, 41] if shared else None)
+        return [r["adversary_id"] for r in records]
+
+    assert all(adversaries(k, shared=True) == chosen for k in range(1, 4))
+    # Without the shared seed the candidates' own generators choose other vehicles.
+    assert any(adversaries(k, shared=False) != chosen for k in range(1, 4))
+    again = run_batch(
+        runner.loop, scenes, [40, 41], [make_planner("idm") for _ in scenes], 0, [40, 41]
+    )
+    volatile = ("seconds", "replan_seconds")
+    assert [{k: v for k, v in r.items() if k not in volatile} for r in again] == [
+        {k: v for k, v in r.items() if k not in volatile} for r in plain
+    ]
+    with pytest.raises(ValueError, match="2 scenes but 1 selection seeds"):
+        runner.loop.reset(scenes, [40, 41], selection_seeds=[40])
+
+
 def test_a_kept_later_candidate_replays_as_it_ran(shard, tmp_path, monkeypatch, capsys):
     """A report's video replays the kept candidate's noise, in its batch as it ran."""
     seeds = {rollout_seed(40 + i, 1) for i in range(2)}

@@ -146,7 +146,10 @@ def prepare(
 
 
 #: The keys of ``reset(options=...)`` (``CounterSceneEnv.reset``).
-RESET_OPTIONS = ("config", "scene", "episode_seed")
+RESET_OPTIONS = ("config", "scene", "episode_seed", "selection_seed")
+
+#: The options a vector env takes one per env, as ``KEY + "s"`` lists (``envs/vector.py``).
+PER_EPISODE_OPTIONS = ("scene", "episode_seed", "selection_seed")
 
 
 def reset_options(options: Any) -> dict:
@@ -170,15 +173,23 @@ def check_episode_inputs(
     scene: Any,
     episode_seed: Any,
     egos: int,
-    names: tuple[str, str, str] = ("seed", "options['scene']", "options['episode_seed']"),
+    names: tuple[str, ...] = (
+        "seed",
+        "options['scene']",
+        "options['episode_seed']",
+        "options['selection_seed']",
+    ),
+    selection_seed: Any = None,
 ) -> None:
-    """Raise unless a reset's own inputs are sound: a seed and an episode seed (None or an
-    int >= 0) and a scene (None, or a :class:`Scene` with ``egos`` egos to pick). ``names``
-    are theirs in the error messages."""
+    """Raise unless a reset's own inputs are sound: a seed, an episode seed and a selection
+    seed (each None or an int >= 0) and a scene (None, or a :class:`Scene` with ``egos`` egos
+    to pick). ``names`` are theirs in the error messages."""
     if seed is not None:
         check_int(names[0], seed, ge=0)
     if episode_seed is not None:
         check_int(names[2], episode_seed, ge=0)
+    if selection_seed is not None:
+        check_int(names[3], selection_seed, ge=0)
     if scene is not None:
         if not isinstance(scene, Scene):
             raise TypeError(f"{names[1]} must be a Scene, got {type(scene).__name__}")

@@ -234,7 +234,10 @@ class CounterSceneEnv(EgoOutcomes, SimulationFrames, AbstractEnv):
         ``"scene"``: a :class:`Scene` to run instead of drawing one; ``"episode_seed"``: the
         closed loop's seed (world-model noise, adversary tie-breaks) instead of one drawn from
         the env's generator; ``counterscene stress`` passes its episode seeds so every planner
-        meets the same traffic randomness. Other keys are ignored with a warning
+        meets the same traffic randomness; ``"selection_seed"``: the seed of a ``random``
+        selector's choice (default: the closed loop's own generator), which candidate
+        rollouts share so that every candidate of an episode has the same adversary
+        (``stress/rollouts.py``). Other keys are ignored with a warning
         (``envs.config.reset_options``). Bad input is refused before anything changes.
         """
         if self._constructing:
@@ -246,7 +249,13 @@ class CounterSceneEnv(EgoOutcomes, SimulationFrames, AbstractEnv):
         options = reset_options(options)
         candidate, source = self._prepare(options.pop("config", None))
         egos = candidate["controlled_vehicles"]
-        check_episode_inputs(seed, options.get("scene"), options.get("episode_seed"), egos)
+        check_episode_inputs(
+            seed,
+            options.get("scene"),
+            options.get("episode_seed"),
+            egos,
+            selection_seed=options.get("selection_seed"),
+        )
         seed = None if seed is None else int(seed)  # numpy's ints too; Gymnasium wants int
         super().configure(candidate)
         self._source, self._reset_options, self._failure = source, options, None
@@ -275,10 +284,11 @@ class CounterSceneEnv(EgoOutcomes, SimulationFrames, AbstractEnv):
         seed = self._reset_options.get("episode_seed")
         if seed is None:
             seed = draw_episode_seed(self.np_random)
+        selection = self._reset_options.get("selection_seed")
         if self.shared:
-            self.loop.start(self.slot, scene, seed, egos)
+            self.loop.start(self.slot, scene, seed, egos, selection_seed=selection)
         else:
-            self.loop.reset([scene], [seed], [egos])
+            self.loop.reset([scene], [seed], [egos], selection_seeds=[selection])
         self.scene, self.egos = scene, egos
         self.frame_infos = [[dict(i) for i in self.loop.infos(self.slot)]]
         self.ended = [False] * len(egos)

@@ -23,8 +23,10 @@ observation and info are ``infos["final_obs"]`` and ``infos["final_info"]`` (wha
 ``metrics``) likewise.
 
 **Per-env options** (besides the single env's ``options``, which apply to every env):
-``"scenes"``, a list of N :class:`Scene` (or None: draw one), and ``"episode_seeds"``, a list
-of N closed-loop seeds (or None), the per-env versions of ``"scene"`` and ``"episode_seed"``.
+``"scenes"``, a list of N :class:`Scene` (or None: draw one), ``"episode_seeds"``, a list
+of N closed-loop seeds (or None), and ``"selection_seeds"``, a list of N seeds of a
+``random`` selector's choice (or None), the per-env versions of ``"scene"``,
+``"episode_seed"`` and ``"selection_seed"``.
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ from counterscene_env.envs.batching import (
     per_env_values,
     reset_mask,
 )
-from counterscene_env.envs.config import check_episode_inputs
+from counterscene_env.envs.config import PER_EPISODE_OPTIONS, check_episode_inputs
 from counterscene_env.envs.single_agent import CounterSceneEnv
 from counterscene_env.scene.prefetch import one_thread_if
 from counterscene_env.sim import ClosedLoop, SimConfig
@@ -144,10 +146,9 @@ class CounterSceneVectorEnv(VectorEnv):
         infos: dict = {}
         for i in np.flatnonzero(mask):
             env_options = dict(options)
-            if per_env["scenes"][i] is not None:
-                env_options["scene"] = per_env["scenes"][i]
-            if per_env["episode_seeds"][i] is not None:
-                env_options["episode_seed"] = per_env["episode_seeds"][i]
+            for key in PER_EPISODE_OPTIONS:
+                if per_env[key + "s"][i] is not None:
+                    env_options[key] = per_env[key + "s"][i]
             self._obs[i], info = self.envs[i].reset(seed=seeds[i], options=env_options)
             infos = self._add_info(infos, info, i)
         self._terminations[mask] = self._truncations[mask] = self._ended[mask] = False
@@ -173,7 +174,7 @@ class CounterSceneVectorEnv(VectorEnv):
         mask = reset_mask(options.pop("reset_mask", None), self.num_envs, self._started)
         per_env = {
             k: per_env_values(options.pop(k, None), k, self.num_envs)
-            for k in ("scenes", "episode_seeds")
+            for k in (key + "s" for key in PER_EPISODE_OPTIONS)
         }
         sim = self._check_reset(seeds, mask, per_env, options)
         if sim != self.loop.config and not mask.all():
@@ -195,7 +196,7 @@ class CounterSceneVectorEnv(VectorEnv):
                 f"reset cannot change {fixed} of a vector env (its spaces and closed loop are "
                 "fixed): make a new one with gymnasium.make_vec"
             )
-        for key in ("scene", "episode_seed"):
+        for key in PER_EPISODE_OPTIONS:
             if key in options:
                 raise ValueError(f"a vector env takes options[{key + 's'!r}], one per env")
         # Every env has the same config: one check for all.
@@ -203,9 +204,10 @@ class CounterSceneVectorEnv(VectorEnv):
         egos = {**self.config, **update}["controlled_vehicles"]
         for i in np.flatnonzero(mask):
             k = i + self.first_index
-            names = (f"seed[{k}]", f"options['scenes'][{k}]", f"options['episode_seeds'][{k}]")
+            names = (f"seed[{k}]", *(f"options[{key + 's'!r}][{k}]" for key in PER_EPISODE_OPTIONS))
             scene, episode_seed = per_env["scenes"][i], per_env["episode_seeds"][i]
-            check_episode_inputs(seeds[i], scene, episode_seed, egos, names)
+            selection_seed = per_env["selection_seeds"][i]
+            check_episode_inputs(seeds[i], scene, episode_seed, egos, names, selection_seed)
         return sim
 
     # ------------------------------------------------------------------ step

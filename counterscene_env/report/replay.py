@@ -158,7 +158,8 @@ def replay_batch(model: WorldModel, run: Run, episodes: range, keep: Sequence[in
     replays = {}
     for k in sorted(set(kept.values())):
         # Every episode of the batch ran candidate k together.
-        seeds = [rollout_seed(int(run.records[i]["seed"]), k) for i in episodes]
+        own = [int(run.records[i]["seed"]) for i in episodes]  # every candidate's selection seeds
+        seeds = [rollout_seed(s, k) for s in own]
         planners = [make_planner(str(run.identity.get("planner", "idm"))) for _ in scenes]
         rows = [episodes.index(e) for e in keep if kept[e] == k]
         frames: dict[int, list[Frame]] = {b: [] for b in rows}
@@ -168,7 +169,7 @@ def replay_batch(model: WorldModel, run: Run, episodes: range, keep: Sequence[in
                 if moved[b]:  # a finished episode (a short log) stays on its last frame
                     frames[b].append(_frame(loop, b))
 
-        play_batch(loop, scenes, seeds, planners, after=draw)
+        play_batch(loop, scenes, seeds, planners, after=draw, selection_seeds=own)
         for b in rows:
             replays[b] = _replay(loop, b, scenes[b], run.records[episodes[b]], frames[b])
     return [replays[episodes.index(e)] for e in keep]

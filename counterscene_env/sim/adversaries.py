@@ -68,7 +68,7 @@ def select_for_ego(
         strict=config.strict_gates,
         yielders_first=config.yielders_first,
         reachable_first=config.reachable_first,
-        rng=ep.rng,
+        rng=ep.selection_rng,
     )
     if sel.conflict is not None:  # back to scene rows
         agent = int(rows[sel.conflict.agent])

@@ -105,6 +105,7 @@ class ClosedLoop:
         scenes: Sequence[Scene],
         seeds: Sequence[int],
         egos: Sequence[Sequence[int]] | None = None,
+        selection_seeds: Sequence[int | None] | None = None,
     ) -> list[dict]:
         """Start one episode per scene.
 
@@ -114,6 +115,9 @@ class ClosedLoop:
             egos: per scene, the agent rows driven by external policies (default: the
                 scene's ego alone). Every episode of a batch has the same number of egos; the
                 first one becomes the scene's ego (the frame of its model window).
+            selection_seeds: per episode, the seed of a ``random`` selector's choice, or
+                None (the default): the episode's own numpy generator chooses. Candidate
+                rollouts of one episode share it (``stress/rollouts.py``).
 
         Returns:
             Each episode's first ego's info dict at step ``now`` (:meth:`infos` has all).
@@ -124,20 +128,31 @@ class ClosedLoop:
             raise ValueError("reset needs at least one scene")
         if egos is None:
             egos = [[s.ego_index] for s in scenes]
+        if selection_seeds is None:
+            selection_seeds = [None] * len(scenes)
+        if len(selection_seeds) != len(scenes):
+            raise ValueError(f"{len(scenes)} scenes but {len(selection_seeds)} selection seeds")
         if len(egos) != len(scenes) or len({len(e) for e in egos}) != 1:
             raise ValueError("egos needs one list per scene, all of the same length")
         c = self.config
         windows = len(scenes) * max(c.max_windows, len(egos[0]))
         check_replan_memory(self.model.config, c.num_samples, windows, c.memory_limit_gb)
         self.episodes = [
-            self._start(s, int(seed), [int(r) for r in rows])
-            for s, seed, rows in zip(scenes, seeds, egos, strict=True)
+            self._start(s, int(seed), [int(r) for r in rows], chooser)
+            for s, seed, rows, chooser in zip(scenes, seeds, egos, selection_seeds, strict=True)
         ]
         for ep in self.episodes:
             ep.records.append([ego_step_info(ep, k, replanned=False) for k in range(len(ep.egos))])
         return [ep.records[-1][0] for ep in self.episodes]
 
-    def start(self, b: int, scene: Scene, seed: int, egos: Sequence[int] | None = None) -> dict:
+    def start(
+        self,
+        b: int,
+        scene: Scene,
+        seed: int,
+        egos: Sequence[int] | None = None,
+        selection_seed: int | None = None,
+    ) -> dict:
         """Start a fresh episode in slot ``b`` while the others go on (a vector env's
         autoreset); ``b == len(episodes)`` adds a slot. Same arguments as :meth:`reset` for one
         episode; it must have as many egos as the others.
@@ -154,7 +169,7 @@ class ClosedLoop:
         c = self.config
         windows = (len(others) + 1) * max(c.max_windows, len(egos))
         check_replan_memory(self.model.config, c.num_samples, windows, c.memory_limit_gb)
-        ep = self._start(scene, int(seed), egos)
+        ep = self._start(scene, int(seed), egos, selection_seed)
         ep.records.append([ego_step_info(ep, k, replanned=False) for k in range(len(ep.egos))])
         if b == len(self.episodes):
             self.episodes.append(ep)
@@ -167,7 +182,9 @@ class ClosedLoop:
         """Egos per episode."""
         return len(self.episodes[0].egos) if self.episodes else 1
 
-    def _start(self, scene: Scene, seed: int, egos: list[int]) -> Episode:
+    def _start(
+        self, scene: Scene, seed: int, egos: list[int], selection_seed: int | None = None
+    ) -> Episode:
         start = scene.current_index
         steps = min(round(self.config.duration / scene.dt), scene.num_steps - 1 - start)
         if steps < 1:
@@ -195,6 +212,10 @@ class ClosedLoop:
             v.LENGTH, v.WIDTH = (float(x) for x in scene.extents[e])  # the bicycle's wheelbase
             vehicles.append(v)
         rng = np.random.default_rng(seed)
+        # A selection seed that is the episode's own leaves the episode exactly as without
+        # one (candidate 0 of candidate rollouts is the plain run).
+        own = selection_seed is None or int(selection_seed) == seed
+        chooser = rng if own else np.random.default_rng(int(selection_seed))
         c = self.replanner.window_config
         ep = Episode(
             factual=scene,
@@ -212,6 +233,7 @@ class ClosedLoop:
             pieces=road_keeping.lane_pieces(segments.points, segments.widths),
             generator=torch.Generator().manual_seed(seed),
             rng=rng,
+            selection_rng=chooser,
             selections=[Selection(self.config.selector, None, "not selected yet", 0)] * len(egos),
             plan_positions=np.zeros((N, F, 2)),
             plan_yaws=np.zeros((N, F)),

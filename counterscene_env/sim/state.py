@@ -77,6 +77,8 @@ class Episode:
         segments: the scene's lane segments (``world_model.window.lane_segments``), cut once.
         pieces: lane centre pieces for road keeping (``sim.road_keeping.lane_pieces``).
         generator, rng: the episode's torch and numpy generators (seeded from its seed).
+        selection_rng: the generator of a ``random`` selector's choice: ``rng`` itself, or
+            one of its own seeded from the episode's selection seed (``ClosedLoop.reset``).
         selections: one adversary selection per ego.
         plan_positions: ``[N, F, 2]`` m, each agent's current plan; plan_yaws ``[N, F]`` rad;
             plan_speeds ``[N, F]`` m/s.
@@ -108,6 +110,7 @@ class Episode:
     pieces: tuple[np.ndarray, ...]
     generator: torch.Generator
     rng: np.random.Generator
+    selection_rng: np.random.Generator
     selections: list[Selection]
     plan_positions: np.ndarray
     plan_yaws: np.ndarray

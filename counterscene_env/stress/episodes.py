@@ -140,9 +140,9 @@ class BatchRunner:
         self.loop = ClosedLoop(model, config.sim)
 
     def __call__(self, first: int, scenes: Sequence[Scene]) -> list[dict]:
-        def run(seeds: list[int]) -> list[dict]:
+        def run(seeds: list[int], selection_seeds: list[int]) -> list[dict]:
             planners = [self.factory() for _ in scenes]
-            return run_batch(self.loop, scenes, seeds, planners, first=first)
+            return run_batch(self.loop, scenes, seeds, planners, first, selection_seeds)
 
         return candidate_rollouts(run, self.config, first, len(scenes))
 
@@ -195,11 +195,17 @@ class PolicyRunner:
 
     def __call__(self, first: int, scenes: Sequence[Scene]) -> list[dict]:
         return candidate_rollouts(
-            lambda seeds: self._run(first, scenes, seeds), self.config, first, len(scenes)
+            lambda seeds, chosen: self._run(first, scenes, seeds, chosen),
+            self.config,
+            first,
+            len(scenes),
         )
 
-    def _run(self, first: int, scenes: Sequence[Scene], seeds: list[int]) -> list[dict]:
-        """The batch's episodes with closed-loop seeds ``seeds``, one record each."""
+    def _run(
+        self, first: int, scenes: Sequence[Scene], seeds: list[int], selection_seeds: list[int]
+    ) -> list[dict]:
+        """The batch's episodes with closed-loop seeds ``seeds`` and selection seeds
+        ``selection_seeds``, one record each."""
         from gymnasium.vector import AutoresetMode
         from gymnasium.vector.utils import iterate
 
@@ -208,7 +214,12 @@ class PolicyRunner:
         B = len(scenes)
         start = time.perf_counter()
         venv = CounterSceneVectorEnv(B, self.settings, autoreset_mode=AutoresetMode.DISABLED)
-        obs, _ = venv.reset(seed=seeds, options={"scenes": list(scenes), "episode_seeds": seeds})
+        options = {
+            "scenes": list(scenes),
+            "episode_seeds": seeds,
+            "selection_seeds": selection_seeds,
+        }
+        obs, _ = venv.reset(seed=seeds, options=options)
         current = list(iterate(venv.observation_space, obs))
         running = list(range(B))
         while running:  # each policy decision on its own observation, as in a single env
@@ -229,18 +240,23 @@ class PolicyRunner:
 
 
 def candidate_rollouts(
-    run: Callable[[list[int]], list[dict]], config: StressConfig, first: int, size: int
+    run: Callable[[list[int], list[int]], list[dict]],
+    config: StressConfig,
+    first: int,
+    size: int,
 ) -> list[dict]:
-    """The records of episodes ``first .. first + size``: ``run(seeds)`` plays the batch with
-    those closed-loop seeds (the episodes' own, ``config.seed + i``); with
-    ``config.rollouts`` K > 1 it plays it K times, candidate k with
-    ``rollouts.rollout_seed(seed, k)``, and each episode keeps its most severe
-    candidate for the ego (``rollouts.keep_most_severe``)."""
+    """The records of episodes ``first .. first + size``: ``run(seeds, selection_seeds)``
+    plays the batch with those closed-loop seeds (the episodes' own, ``config.seed + i``)
+    and seeds of a ``random`` selector's choice (the episodes' own too); with
+    ``config.rollouts`` K > 1 it plays it K times, candidate k with closed-loop seeds
+    ``rollouts.rollout_seed(seed, k)`` and the same selection seeds (every candidate of an
+    episode has the same adversary: the protocol varies the noise, not the choice), and
+    each episode keeps its most severe candidate for the ego (``rollouts.keep_most_severe``)."""
     seeds = [config.seed + first + b for b in range(size)]
     if config.rollouts == 1:
-        return run(seeds)
+        return run(seeds, seeds)
     return keep_most_severe(
-        [run([rollout_seed(s, k) for s in seeds]) for k in range(config.rollouts)]
+        [run([rollout_seed(s, k) for s in seeds], seeds) for k in range(config.rollouts)]
     )
 
 
@@ -305,10 +321,12 @@ def run_batch(
     seeds: Sequence[int],
     planners: Sequence[Planner],
     first: int = 0,
+    selection_seeds: Sequence[int | None] | None = None,
 ) -> list[dict]:
-    """Run B episodes together to their end (episode indices ``first ..``); one record each."""
+    """Run B episodes together to their end (episode indices ``first ..``; selection seeds
+    as ``ClosedLoop.reset``); one record each."""
     start = time.perf_counter()
-    play_batch(loop, scenes, seeds, planners)
+    play_batch(loop, scenes, seeds, planners, selection_seeds=selection_seeds)
     share = (time.perf_counter() - start) / len(scenes)
     return [_record(loop, b, scene, seeds[b], share, first + b) for b, scene in enumerate(scenes)]
 
@@ -319,12 +337,14 @@ def play_batch(
     seeds: Sequence[int],
     planners: Sequence[Planner],
     after: Callable[[list[bool]], None] | None = None,
+    selection_seeds: Sequence[int | None] | None = None,
 ) -> None:
-    """Reset ``loop`` and the planners on B scenes and seeds, and step them to their end, each
-    ego driven by its planner. ``after(moved)``, if given, runs after the reset (every
-    episode moved to "now") and after every step (the ``[B]`` episodes that took it): a
-    report's replay draws its frames there."""
-    loop.reset(scenes, seeds)
+    """Reset ``loop`` and the planners on B scenes and seeds (selection seeds as
+    ``ClosedLoop.reset``), and step them to their end, each ego driven by its planner.
+    ``after(moved)``, if given, runs after the reset (every episode moved to "now") and
+    after every step (the ``[B]`` episodes that took it): a report's replay draws its frames
+    there."""
+    loop.reset(scenes, seeds, selection_seeds=selection_seeds)
     for planner, scene, seed in zip(planners, scenes, seeds, strict=True):
         planner.reset(scene, seed)
     B = len(scenes)
