@@ -11,7 +11,9 @@ fail in this scene" into "can the traffic make it fail in K tries": a search for
 planner's failures, at K times the cost.
 
 Candidate k of the episode with closed-loop seed ``s`` runs with :func:`rollout_seed` ``(s,
-k)``; candidate 0 is the episode's own seed, so one candidate is the plain run.
+k)``; candidate 0 is the episode's own seed, so one candidate is the plain run. Every
+candidate keeps ``s`` as its selection seed (``ClosedLoop.reset``), so the candidates differ
+in their noise and not in their adversary, a ``random`` selector's included.
 """
 
 from __future__ import annotations
