@@ -148,8 +148,13 @@ def prepare(
 #: The keys of ``reset(options=...)`` (``CounterSceneEnv.reset``).
 RESET_OPTIONS = ("config", "scene", "episode_seed", "selection_seed")
 
-#: The options a vector env takes one per env, as ``KEY + "s"`` lists (``envs/vector.py``).
-PER_EPISODE_OPTIONS = ("scene", "episode_seed", "selection_seed")
+#: The reset options of one episode, and the list of one per env that a vector env takes for
+#: each instead (``envs/vector.py``).
+PER_ENV_OPTIONS = {
+    "scene": "scenes",
+    "episode_seed": "episode_seeds",
+    "selection_seed": "selection_seeds",
+}
 
 
 def reset_options(options: Any) -> dict:

@@ -40,7 +40,7 @@ from counterscene_env.envs.batching import (
     reset_mask,
     unbatch_info,
 )
-from counterscene_env.envs.config import PER_EPISODE_OPTIONS
+from counterscene_env.envs.config import PER_ENV_OPTIONS
 from counterscene_env.envs.vector import CounterSceneVectorEnv
 
 #: Errors a worker hands back as they are: bad input, named by its key or env.
@@ -145,7 +145,7 @@ class ShardedVectorEnv(VectorEnv):
         mask = reset_mask(options.pop("reset_mask", None), self.num_envs, self._started)
         per_env = {
             k: per_env_values(options.pop(k, None), k, self.num_envs)
-            for k in (key + "s" for key in PER_EPISODE_OPTIONS)
+            for k in PER_ENV_OPTIONS.values()
         }
         if "config" in options and not mask.all():
             # A shard whose envs are all reset would accept a change of closed-loop settings

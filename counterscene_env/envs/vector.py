@@ -49,7 +49,7 @@ from counterscene_env.envs.batching import (
     per_env_values,
     reset_mask,
 )
-from counterscene_env.envs.config import PER_EPISODE_OPTIONS, check_episode_inputs
+from counterscene_env.envs.config import PER_ENV_OPTIONS, check_episode_inputs
 from counterscene_env.envs.single_agent import CounterSceneEnv
 from counterscene_env.scene.prefetch import one_thread_if
 from counterscene_env.sim import ClosedLoop, SimConfig
@@ -146,9 +146,9 @@ class CounterSceneVectorEnv(VectorEnv):
         infos: dict = {}
         for i in np.flatnonzero(mask):
             env_options = dict(options)
-            for key in PER_EPISODE_OPTIONS:
-                if per_env[key + "s"][i] is not None:
-                    env_options[key] = per_env[key + "s"][i]
+            for key, per_env_key in PER_ENV_OPTIONS.items():
+                if per_env[per_env_key][i] is not None:
+                    env_options[key] = per_env[per_env_key][i]
             self._obs[i], info = self.envs[i].reset(seed=seeds[i], options=env_options)
             infos = self._add_info(infos, info, i)
         self._terminations[mask] = self._truncations[mask] = self._ended[mask] = False
@@ -174,7 +174,7 @@ class CounterSceneVectorEnv(VectorEnv):
         mask = reset_mask(options.pop("reset_mask", None), self.num_envs, self._started)
         per_env = {
             k: per_env_values(options.pop(k, None), k, self.num_envs)
-            for k in (key + "s" for key in PER_EPISODE_OPTIONS)
+            for k in PER_ENV_OPTIONS.values()
         }
         sim = self._check_reset(seeds, mask, per_env, options)
         if sim != self.loop.config and not mask.all():
@@ -196,15 +196,15 @@ class CounterSceneVectorEnv(VectorEnv):
                 f"reset cannot change {fixed} of a vector env (its spaces and closed loop are "
                 "fixed): make a new one with gymnasium.make_vec"
             )
-        for key in PER_EPISODE_OPTIONS:
+        for key, per_env_key in PER_ENV_OPTIONS.items():
             if key in options:
-                raise ValueError(f"a vector env takes options[{key + 's'!r}], one per env")
+                raise ValueError(f"a vector env takes options[{per_env_key!r}], one per env")
         # Every env has the same config: one check for all.
         sim = self.envs[0].check_config(update)
         egos = {**self.config, **update}["controlled_vehicles"]
         for i in np.flatnonzero(mask):
             k = i + self.first_index
-            names = (f"seed[{k}]", *(f"options[{key + 's'!r}][{k}]" for key in PER_EPISODE_OPTIONS))
+            names = (f"seed[{k}]", *(f"options[{key!r}][{k}]" for key in PER_ENV_OPTIONS.values()))
             scene, episode_seed = per_env["scenes"][i], per_env["episode_seeds"][i]
             selection_seed = per_env["selection_seeds"][i]
             check_episode_inputs(seeds[i], scene, episode_seed, egos, names, selection_seed)

@@ -155,10 +155,10 @@ def replay_batch(model: WorldModel, run: Run, episodes: range, keep: Sequence[in
     scenes = batch_scenes(run, episodes)
     loop = ClosedLoop(model, SimConfig.from_mapping(run.sim()))
     kept = {e: int(run.records[e].get("rollout", 0)) for e in keep}  # the candidate each kept
+    own = [int(run.records[i]["seed"]) for i in episodes]  # every candidate's selection seeds
     replays = {}
     for k in sorted(set(kept.values())):
         # Every episode of the batch ran candidate k together.
-        own = [int(run.records[i]["seed"]) for i in episodes]  # every candidate's selection seeds
         seeds = [rollout_seed(s, k) for s in own]
         planners = [make_planner(str(run.identity.get("planner", "idm"))) for _ in scenes]
         rows = [episodes.index(e) for e in keep if kept[e] == k]
