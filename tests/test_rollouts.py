@@ -15,7 +15,8 @@ from counterscene_env.report.rundir import load_run
 from counterscene_env.scene.shards import save_scenes
 from counterscene_env.sim import SimConfig
 from counterscene_env.stress import StressConfig, rollouts
-from counterscene_env.stress.episodes import BatchRunner, run_batch
+from counterscene_env.stress.batch import run_batch
+from counterscene_env.stress.episodes import BatchRunner
 from counterscene_env.stress.rollouts import keep_most_severe, rollout_seed
 from counterscene_env.world_model import load_model
 

@@ -21,7 +21,7 @@ from counterscene_env.geometry import overlaps_over_time
 from counterscene_env.planners import make_planner
 from counterscene_env.scene.sources import scenes_for
 from counterscene_env.sim import ClosedLoop, SimConfig
-from counterscene_env.stress.episodes import play_batch
+from counterscene_env.stress.batch import play_batch
 from counterscene_env.world_model import load_model
 
 SECONDS = (2, 4, 6, 8, 10)

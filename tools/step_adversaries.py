@@ -20,7 +20,7 @@ import numpy as np
 from counterscene_env.planners import make_planner
 from counterscene_env.scene.sources import scenes_for
 from counterscene_env.sim import ClosedLoop, SimConfig
-from counterscene_env.stress.episodes import play_batch
+from counterscene_env.stress.batch import play_batch
 from counterscene_env.world_model import load_model
 
 BATCH = 4

@@ -27,7 +27,7 @@ from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import scenes_for
 from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.stress import SB3_PREFIX
-from counterscene_env.stress.episodes import play_batch
+from counterscene_env.stress.batch import play_batch
 from counterscene_env.stress.rollouts import rollout_seed
 from counterscene_env.world_model.model import WorldModel
 

@@ -18,18 +18,19 @@ ego-vs-adversary collisions, mean min TTC and fallbacks. Wall-clock figures are 
 (:func:`timings`, ``timings.json``), so two runs of the same episodes give identical
 ``metrics.json``.
 
-Modules: ``config`` (:class:`StressConfig`), ``episodes`` (running batches in this process),
+Modules: ``config`` (:class:`StressConfig`), ``batch`` (one batch of episodes in a closed
+loop), ``episodes`` (running a run's batches in this process),
 ``workers`` (in several), ``ray_backend`` (as Ray tasks), ``log`` (``episodes.jsonl`` and the
 other files of ``--out``), ``summary``.
 """
 
+from counterscene_env.stress.batch import play_batch, run_batch
 from counterscene_env.stress.config import SB3_PREFIX, StressConfig, run_identity
 from counterscene_env.stress.episodes import (
     BatchRunner,
     PolicyRunner,
     chunks,
     make_runner,
-    run_batch,
     run_episodes,
     run_policy_episodes,
 )
@@ -53,6 +54,7 @@ __all__ = [
     "StressConfig",
     "chunks",
     "make_runner",
+    "play_batch",
     "run_batch",
     "run_episodes",
     "run_identity",

@@ -42,7 +42,7 @@ from counterscene_env.metrics import evaluate_scene
 from counterscene_env.planners import IDMPlanner
 from counterscene_env.scene.sources import scenes_for
 from counterscene_env.sim import ClosedLoop, SimConfig
-from counterscene_env.stress.episodes import play_batch
+from counterscene_env.stress.batch import play_batch
 from counterscene_env.world_model import load_model
 from counterscene_env.world_model.window import collate, make_window
 
