@@ -1,6 +1,6 @@
 """Split the NGSIM CommonRoad scenarios into training and held-out recordings, by map section.
 
-    python tools/ngsim_split.py /tmp/cr/commonroad_ngsim data/ngsim_split
+    python tools/ngsim_split.py data/commonroad_ngsim data/ngsim_split
 
 writes ``OUT/train/`` and ``OUT/heldout/``: symbolic links to the ``.xml`` files (nothing is
 copied), then ``counterscene generate --from-commonroad OUT/train --out data/ngsim`` converts
