@@ -81,3 +81,37 @@ def test_every_tool_command_the_docs_cite_exists_and_takes_its_flags(capsys, mon
         text = _tool_help(path, capsys, monkeypatch)
         missing = sorted(f for f in flags if f not in text)
         assert not missing, f"tools/{name}.py does not take {missing}, which the docs cite"
+
+
+#: ``docs/<page>.md, "Section"`` as the code and the pages cite a page's section (the quote may
+#: wrap onto the next line of a comment or docstring).
+_CITATION = re.compile(r"docs/([\w/]+\.md)`?\)?,\s*(?:#:?\s*)?\"([^\"]+)\"")
+
+
+def _sections(page: Path) -> list[str]:
+    """A page's headings and its bold run-in labels (``**Sources.**``), as plain text."""
+    text = page.read_text().replace("`", "")
+    heads = [re.sub(r"\s*\{#.*\}\s*$", "", h) for h in re.findall(r"^#+ (.+)$", text, re.M)]
+    labels = re.findall(r"^(?:- )?\*\*([^*]+)\*\*", text, re.M)
+    return heads + [label.rstrip(".:") for label in labels]
+
+
+def test_every_cited_docs_section_exists():
+    """A comment or page that sends the reader to ``docs/<page>.md, "Section"`` names a page
+    that exists and a section it has (a heading or a bold label starting with those words),
+    so moving a section means updating the code that cites it."""
+    files = [*(ROOT / "counterscene_env").rglob("*.py"), ROOT / "README.md", *DOCS.rglob("*.md")]
+    for folder in ("tools", "tests", "agents", "examples"):
+        files += sorted((ROOT / folder).glob("*.py"))
+    checked = 0
+    for path in files:
+        for page, quoted in _CITATION.findall(path.read_text()):
+            section = re.sub(r"\s*\n\s*(?:#:?\s*)?", " ", quoted).strip().rstrip(".,")
+            target = DOCS / page
+            where = f"{path.relative_to(ROOT)} cites docs/{page}, {section!r}"
+            assert target.exists(), f"{where}: no such page"
+            assert any(s.startswith(section.replace("`", "")) for s in _sections(target)), (
+                f"{where}: the page has no such section"
+            )
+            checked += 1
+    assert checked > 50, "the citation pattern no longer finds the code's citations"

@@ -1,5 +1,5 @@
 """Training scenes from the network's own closed-loop states, highway-env's traffic driving
-the future from there (a DAgger-style prototype; docs/world_model.md, "The network's
+the future from there (a DAgger-style prototype; docs/world_model_experiments.md, "The network's
 crossing collisions").
 
 About three quarters of the network alone's collisions at the generated intersections are

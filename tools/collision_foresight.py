@@ -1,5 +1,5 @@
-"""Did the world model see its own collisions coming? (docs/world_model.md, "The network's
-crossing collisions").
+"""Did the world model see its own collisions coming? (docs/world_model_experiments.md,
+"The network's crossing collisions").
 
 The tool runs the unguided closed loop with the log replayed for the ego on stored scenes, as
 ``tools/wrong_way.py`` does, and records every replan's samples and the one the choice among

@@ -1,5 +1,5 @@
 """Who passes first where two logged paths cross: the log, the lanes' right of way and the
-model's samples (docs/world_model.md, "The network's crossing collisions").
+model's samples (docs/world_model_experiments.md, "The network's crossing collisions").
 
 For every window (one every second) and every pair of vehicles whose logged paths cross
 within the horizon (closest approach under 2 m, at 30-150 degrees, on lanes of different

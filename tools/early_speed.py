@@ -1,5 +1,5 @@
 """Where in the first 3 s a world model loses to constant velocity, and what its first speed
-changes cost (docs/world_model.md, "Tracking noise in the training data").
+changes cost (docs/world_model_experiments.md, "Tracking noise in the training data").
 
 Moving agents (3 m/s or more now) with their whole 3 s logged, every second of each log
 (as ``counterscene evaluate-model --every 1``), one sample of 6 per sampling call:

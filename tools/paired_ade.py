@@ -8,7 +8,8 @@ velocity, and each model's difference from the first, paired by scene with a boo
 
 A model named ``M@generated`` (or ``M@recorded``) reads every scene as highway-env's traffic
 (or as a recording): the windows' ``recorded`` flag that a model trained with
-``source_flag`` reads (docs/world_model.md, "Real driving and generated traffic told apart").
+``source_flag`` reads (docs/world_model_experiments.md, "Real driving and generated traffic
+told apart").
 
 Every second of each log where 3 s of history and 3 s of future exist, every agent the model
 sees (as ``counterscene evaluate-model --every 1``, one sample per sampling call, the same seed

@@ -1,5 +1,5 @@
 """Wrong-way driving in the closed loop: how often the world model's traffic drives in the lane
-of the oncoming traffic (docs/world_model.md, "Wrong-way driving").
+of the oncoming traffic (docs/world_model_experiments.md, "Wrong-way driving").
 
 A moving vehicle (over 1 m/s) is *wrong-way* at a step when its centre lies within 1 m of the
 centre line of a lane whose direction is more than 135 degrees from its course, and more than

@@ -1,7 +1,8 @@
 """Hand a moment of a scene to highway-env's traffic and record what it does next.
 
 Used to give the world model's own closed-loop states an answer to learn from
-(``tools/closed_loop_data.py``; docs/world_model.md, "The network's crossing collisions"):
+(``tools/closed_loop_data.py``; docs/world_model_experiments.md, "The network's crossing
+collisions"):
 every vehicle becomes one of the recordings' IDM vehicles (``ForwardIDMVehicle``) at its
 exact position, heading and speed, on highway-env's intersection road (which gives way by
 lane priority), routed to a destination node, and the traffic runs at the recordings' 20 Hz

@@ -100,7 +100,7 @@ class SimConfig:
             over the first 2 s, sim/realism.py). A car crossing another's path must brake
             about 3 s before the crossing; a cost that read only the first 2 s (until 27 Nov
             2026) saw the world model's crossing collisions only once every sample had them
-            (docs/world_model.md, "The network's crossing collisions").
+            (docs/world_model_experiments.md, "The network's crossing collisions").
         cover_radius: an agent is planned from a model window only if it is within this many
             metres of the window's centre [m]; farther agents get windows of their own.
         max_windows: model windows per episode and replan (the ego's plus extra ones).

@@ -237,7 +237,7 @@ class Replanner:
         hold = self.model.held_agents(batch, c.hold_parked)
         # The guided adversary keeps to any lane strip, whichever its way: its counterfactual
         # crosses into the ego's lane, and lane keeping must not undo the guidance
-        # (docs/world_model.md, "Wrong-way driving").
+        # (docs/world_model_experiments.md, "Wrong-way driving").
         any_way = torch.zeros_like(hold)
         for j, adv in enumerate(adv_rows):
             if adv >= 0:

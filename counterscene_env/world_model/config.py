@@ -60,15 +60,15 @@ class ModelConfig:
             gives way at a crossing; 0 where the map gives none, as on every imported map).
             Without it (the default, and checkpoints without the key) the network cannot
             tell from the map who has the right of way at highway-env's intersection, whose
-            four arms have the same shape. Measured in docs/world_model.md, "The network's
-            crossing collisions".
+            four arms have the same shape. Measured in docs/world_model_experiments.md,
+            "The network's crossing collisions".
         source_flag: every agent's tokens also read whether the scene is a recording of real
             driving or highway-env's generated traffic (the window's ``recorded``, from
             ``Scene.generated``), so that one model trained on both can keep highway-env's
             habits (exact speeds between manoeuvres, stop-and-go giving way) to highway-env's
             roads. Without it (the default, and checkpoints without the key) the network
             must tell them apart from the scene itself. Fine-tuned in, it was not taken up
-            (docs/world_model.md, "Real driving and generated traffic told apart").
+            (docs/world_model_experiments.md, "Real driving and generated traffic told apart").
         d_model: token width.
         num_heads: attention heads (must divide ``d_model``).
         num_blocks: blocks of (temporal, social, map) attention + MLP.
@@ -85,7 +85,7 @@ class ModelConfig:
             at the first step, or half of the training windows, none: a flag says which).
             With either, the social attention at each future token adds a learned per-head
             bias of the two agents' rolled-out relative position. Measured in
-            docs/world_model.md, "The network's crossing collisions".
+            docs/world_model_experiments.md, "The network's crossing collisions".
         prediction: what the network outputs: clean actions ``"x0"`` or the noise ``"epsilon"``.
         num_train_timesteps: K of the cosine schedule.
         sampler: default sampler, ``"ddim"`` (strided) or ``"ddpm"`` (all K steps).

@@ -1,7 +1,7 @@
 """Final-step lane keeping: the finished samples' yaw rates corrected so that every on-lane
 agent stays inside a strip of a lane going its way (a lane going against its course counts
-``map_guidance.WRONG_WAY_PENALTY`` m farther; docs/world_model.md, "Wrong-way driving") of its
-window's map (``ModelConfig.lane_steering``, on in both
+``map_guidance.WRONG_WAY_PENALTY`` m farther; docs/world_model_experiments.md, "Wrong-way
+driving") of its window's map (``ModelConfig.lane_steering``, on in both
 presets; paper hyper-parameter "final-step guidance", restricted to steering; measured in
 docs/world_model.md).
 

@@ -48,7 +48,7 @@ def training_loss(
             measures it: a lane going against a course counts
             ``map_guidance.WRONG_WAY_PENALTY`` m farther. Off by default: a 1,500-step
             fine-tune with it did not lower the network's own wrong-way driving
-            (docs/world_model.md, "Wrong-way driving").
+            (docs/world_model_experiments.md, "Wrong-way driving").
 
     Returns a dict with ``loss`` (to minimise) and its terms ``action``, ``position`` [m],
     ``yaw`` [rad], ``speed`` [m/s], ``off_lane`` [m], ``overlap`` [m] (detached).

@@ -29,7 +29,7 @@ SAME_WAY_COS = 0.0
 #: is known (``lane_excess``'s ``headings``). The oncoming lane, 4 m over, is no lane to keep
 #: to: a plan in it is off its lanes by the distance to its own. Where no lane goes its way
 #: within this (a U-turn), the nearest lane still counts, this much farther
-#: (docs/world_model.md, "Wrong-way driving").
+#: (docs/world_model_experiments.md, "Wrong-way driving").
 WRONG_WAY_PENALTY = 10.0
 NEAREST_PIECES = 8  # lane pieces per point that ``lane_excess`` measures before its check
 
