@@ -214,6 +214,21 @@ def check_int(key: str, value: Any, ge: int | None = None, le: int | None = None
     return int(value)
 
 
+#: The largest seed of a closed-loop episode: its torch generator takes at most 64 bits
+#: (``torch.Generator.manual_seed``); a larger int would fail inside ``reset``.
+MAX_SEED = 2**64 - 1
+
+
+#: The largest first seed of a run (``--seed``, a training seed): 32 bits, so that the seeds
+#: derived from it (episode i: seed + i; a training step: seed * 100003 + step) stay in 64.
+MAX_RUN_SEED = 2**32 - 1
+
+
+def check_seed(key: str, value: Any) -> int:
+    """``value`` as an int if it is a seed torch and numpy both take: in [0, MAX_SEED]."""
+    return check_int(key, value, ge=0, le=MAX_SEED)
+
+
 def check_real(
     key: str,
     value: Any,

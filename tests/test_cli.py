@@ -71,6 +71,8 @@ def test_errors_are_one_clear_line(tmp_path):
     [
         (["stress", "--scenario", "merge", "--seed", "-5"], ["--seed", ">= 0", "-5"]),
         (["generate", "--scenario", "merge", "--seed", "-1", "--out", "X"], ["--seed", ">= 0"]),
+        (["stress", "--scenario", "merge", "--seed", str(2**32)], ["--seed", "<= 4294967295"]),
+        (["train", "--data", "X", "--out", "Y", "--seed", str(2**32)], ["--seed", "<="]),
         (["bench-env", "--steps", "0"], ["--steps", ">= 1"]),
         (["bench-env", "--threads", "0"], ["--threads", ">= 1"]),
         (["bench", "--samples", "0"], ["--samples", ">= 1"]),

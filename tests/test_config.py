@@ -136,3 +136,16 @@ def test_sb3_planners_run_with_every_sim_setting(generated, tmp_path, monkeypatc
     records = run_policy_episodes(config, progress=False)
     assert seen == [sim]
     assert len(records) == 1 and np.isfinite(records[0]["rollout_s"])
+
+
+def test_a_stress_runs_episode_seeds_must_fit_the_torch_generator():
+    """Episode i runs under seed + i, which seeds a torch generator (64 bits): a run whose
+    last episode would overflow it is refused when it is configured, not episodes in."""
+    from counterscene_env.config import MAX_SEED
+    from counterscene_env.stress import StressConfig
+
+    assert StressConfig("merge", episodes=2, seed=MAX_SEED - 1).seed == MAX_SEED - 1
+    with pytest.raises(ValueError, match=r"seed \d+ with 3 episodes"):
+        StressConfig("merge", episodes=3, seed=MAX_SEED - 1)
+    with pytest.raises(TypeError, match="seed must be an int"):
+        StressConfig("merge", seed=1.5)

@@ -242,6 +242,33 @@ def test_random_invalid_configs_are_refused_and_change_nothing(running, bad):
         STATS["refused configs"] += 1
 
 
+bad_seeds = st.one_of(
+    st.integers(max_value=-1),
+    st.integers(min_value=2**64),  # more than the episode's torch generator takes
+    st.floats(allow_nan=True),
+    st.text(max_size=4),
+    st.booleans(),
+    st.lists(st.integers(0, 9), max_size=2),
+)
+bad_reset_options = st.one_of(
+    st.tuples(st.sampled_from(["episode_seed", "selection_seed"]), bad_seeds),
+    st.tuples(st.just("scene"), st.one_of(st.text(max_size=8), st.integers(), st.just({}))),
+    st.tuples(st.just("config"), st.one_of(st.text(max_size=8), st.integers(), st.just([]))),
+)
+
+
+@PROFILE
+@given(bad=bad_reset_options)
+def test_random_invalid_reset_options_are_refused_and_change_nothing(running, bad):
+    key, value = bad
+    before = snapshot(running)
+    with pytest.raises((TypeError, ValueError)) as info:
+        running.reset(options={key: value})
+    assert key in str(info.value), str(info.value)
+    assert snapshot(running) == before
+    STATS["refused reset options"] += 1
+
+
 bad_actions = st.one_of(
     st.text(max_size=4),
     st.none(),

@@ -195,6 +195,8 @@ def test_a_bad_scene_option_changes_nothing(env):
         ({"episode_seed": -1}, ValueError),
         ({"selection_seed": 1.5}, TypeError),
         ({"selection_seed": -1}, ValueError),
+        ({"episode_seed": 2**64}, ValueError),  # more than the torch generator's 64 bits
+        ({"selection_seed": 2**64}, ValueError),
         ({"config": ["duration", 1.0]}, TypeError),
     ):
         with pytest.raises(kind, match=next(iter(options))):

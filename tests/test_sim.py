@@ -215,8 +215,18 @@ def test_bad_input_is_refused_with_a_clear_error(model, generated):
         loop.step(np.array([[np.nan, 0.0]]))
     with pytest.raises(ValueError, match="actions or ego_states"):
         loop.step()
-    # None of the refused calls moved anything (no replan, no step).
-    assert loop.episodes[0].replans == 0
+    first = loop.episodes[0]
+    for seeds, selection, words in (
+        ([2**64], None, r"seeds\[0\] must be <= "),  # the torch generator takes 64 bits
+        ([-1], None, r"seeds\[0\] must be >= 0"),
+        ([0], [2**64], r"selection_seeds\[0\]"),
+    ):
+        with pytest.raises(ValueError, match=words):
+            loop.reset([generated["merge"]], seeds, selection_seeds=selection)
+    with pytest.raises(ValueError, match="selection_seed must be <="):
+        loop.start(1, generated["merge"], 0, selection_seed=2**64)
+    # None of the refused calls moved anything (no replan, no step, the same episode).
+    assert loop.episodes == [first] and first.replans == 0
     assert loop.state(0).t == generated["merge"].current_index
     with pytest.raises(ValueError, match="unknown selector"):
         SimConfig(selector="closest")

@@ -153,6 +153,7 @@ def test_bad_input_is_refused_and_changes_nothing():
         ({"config": {"duration": -1.0}}, "duration"),
         ({"scenes": [None, "merge"]}, r"scenes'\]\[1\]"),
         ({"episode_seeds": [1, -1]}, r"episode_seeds'\]\[1\]"),
+        ({"episode_seeds": [1, 2**64]}, r"episode_seeds'\]\[1\]"),
         ({"selection_seeds": [-1, None]}, r"selection_seeds'\]\[0\]"),
         ({"selection_seed": 3}, "selection_seeds"),
     ]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from counterscene_env.config import Scenario  # a light module: --help stays instant
+from counterscene_env.config import MAX_RUN_SEED, Scenario  # light: --help stays instant
 
 #: The highway-env roads ``generate`` and ``evaluate-model`` can record scenes on.
 SCENARIO_CHOICES = Scenario.values()
@@ -26,8 +26,9 @@ def add_quiet_flag(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def int_at_least(low: int):
-    """An ``argparse`` type: an int ``>= low`` (the parser names the flag in its error)."""
+def int_at_least(low: int, high: int | None = None):
+    """An ``argparse`` type: an int ``>= low`` (and ``<= high``, if given; the parser names the
+    flag in its error)."""
 
     def parse(text: str) -> int:
         try:
@@ -36,14 +37,17 @@ def int_at_least(low: int):
             raise argparse.ArgumentTypeError(f"must be an int, got {text!r}") from None
         if value < low:
             raise argparse.ArgumentTypeError(f"must be >= {low}, got {value}")
+        if high is not None and value > high:
+            raise argparse.ArgumentTypeError(f"must be <= {high}, got {value}")
         return value
 
     return parse
 
 
 def add_seed_flag(p: argparse.ArgumentParser, default: int, help: str) -> None:
-    """Add ``--seed N`` (an int >= 0: seeds are numpy's) with the given default and help."""
-    p.add_argument("--seed", type=int_at_least(0), default=default, help=help)
+    """Add ``--seed N`` (an int in [0, ``config.MAX_RUN_SEED``]: a first seed, from which the
+    episodes', scenes' or training steps' seeds are derived) with the given default and help."""
+    p.add_argument("--seed", type=int_at_least(0, MAX_RUN_SEED), default=default, help=help)
 
 
 def parse_overrides(items: list[str]) -> dict:

@@ -15,7 +15,14 @@ from typing import Any
 
 import numpy as np
 
-from counterscene_env.config import check_bool, check_int, check_real, defaults, describe_value
+from counterscene_env.config import (
+    check_bool,
+    check_int,
+    check_real,
+    check_seed,
+    defaults,
+    describe_value,
+)
 from counterscene_env.envs.egos import pick_egos
 from counterscene_env.envs.spaces import KINEMATIC_FEATURES
 from counterscene_env.scene.core import Scene
@@ -186,15 +193,16 @@ def check_episode_inputs(
     ),
     selection_seed: Any = None,
 ) -> None:
-    """Raise unless a reset's own inputs are sound: a seed, an episode seed and a selection
-    seed (each None or an int >= 0) and a scene (None, or a :class:`Scene` with ``egos`` egos
+    """Raise unless a reset's own inputs are sound: a seed (None or an int >= 0), an episode
+    seed and a selection seed (each None or an int in [0, ``config.MAX_SEED``]: they seed
+    the episode's torch generator) and a scene (None, or a :class:`Scene` with ``egos`` egos
     to pick). ``names`` are theirs in the error messages."""
     if seed is not None:
         check_int(names[0], seed, ge=0)
     if episode_seed is not None:
-        check_int(names[2], episode_seed, ge=0)
+        check_seed(names[2], episode_seed)
     if selection_seed is not None:
-        check_int(names[3], selection_seed, ge=0)
+        check_seed(names[3], selection_seed)
     if scene is not None:
         if not isinstance(scene, Scene):
             raise TypeError(f"{names[1]} must be a Scene, got {type(scene).__name__}")

@@ -232,9 +232,10 @@ class CounterSceneEnv(EgoOutcomes, SimulationFrames, AbstractEnv):
 
         ``options`` (all optional): ``"config"``: config updates, as highway-env;
         ``"scene"``: a :class:`Scene` to run instead of drawing one; ``"episode_seed"``: the
-        closed loop's seed (world-model noise, adversary tie-breaks) instead of one drawn from
-        the env's generator; ``counterscene stress`` passes its episode seeds so every planner
-        meets the same traffic randomness; ``"selection_seed"``: the seed of a ``random``
+        closed loop's seed (world-model noise, adversary tie-breaks; at most 64 bits) instead
+        of one drawn from the env's generator; ``counterscene stress`` passes its episode
+        seeds so every planner meets the same traffic randomness; ``"selection_seed"``: the
+        seed (the same range) of a ``random``
         selector's choice (default: the closed loop's own generator), which candidate
         rollouts share so that every candidate of an episode has the same adversary
         (``stress/rollouts.py``). Other keys are ignored with a warning

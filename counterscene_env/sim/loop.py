@@ -55,6 +55,7 @@ from highway_env.vehicle.kinematics import Vehicle
 
 from counterscene_env.adversary.guidance import guidance_preset
 from counterscene_env.adversary.selection import Selection
+from counterscene_env.config import check_seed
 from counterscene_env.scene.core import Scene
 from counterscene_env.sim import road_keeping
 from counterscene_env.sim.adversaries import select_on_log
@@ -111,7 +112,8 @@ class ClosedLoop:
 
         Args:
             scenes: the factual scenes.
-            seeds: one seed per episode (its torch and numpy generators).
+            seeds: one seed per episode (its torch and numpy generators), an int in
+                [0, ``config.MAX_SEED``].
             egos: per scene, the agent rows driven by external policies (default: the
                 scene's ego alone). Every episode of a batch has the same number of egos; the
                 first one becomes the scene's ego (the frame of its model window).
@@ -134,6 +136,10 @@ class ClosedLoop:
             raise ValueError(f"{len(scenes)} scenes but {len(selection_seeds)} selection seeds")
         if len(egos) != len(scenes) or len({len(e) for e in egos}) != 1:
             raise ValueError("egos needs one list per scene, all of the same length")
+        for b, (seed, chooser) in enumerate(zip(seeds, selection_seeds, strict=True)):
+            check_seed(f"seeds[{b}]", seed)
+            if chooser is not None:
+                check_seed(f"selection_seeds[{b}]", chooser)
         c = self.config
         windows = len(scenes) * max(c.max_windows, len(egos[0]))
         check_replan_memory(self.model.config, c.num_samples, windows, c.memory_limit_gb)
@@ -166,6 +172,9 @@ class ClosedLoop:
         others = [ep for k, ep in enumerate(self.episodes) if k != b]
         if others and len(egos) != len(others[0].egos):
             raise ValueError(f"{len(egos)} egos, but the other episodes have {len(others[0].egos)}")
+        check_seed("seed", seed)
+        if selection_seed is not None:
+            check_seed("selection_seed", selection_seed)
         c = self.config
         windows = (len(others) + 1) * max(c.max_windows, len(egos))
         check_replan_memory(self.model.config, c.num_samples, windows, c.memory_limit_gb)

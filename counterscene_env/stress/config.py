@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from counterscene_env.config import MAX_SEED, check_seed
 from counterscene_env.planners import make_planner
 from counterscene_env.scene.sources import check_spec, is_generated
 from counterscene_env.sim import SimConfig
@@ -60,6 +61,12 @@ class StressConfig:
             raise ValueError(f"egos must be >= 1, got {self.egos}")
         if self.rollouts < 1:
             raise ValueError(f"rollouts must be >= 1, got {self.rollouts}")
+        check_seed("seed", self.seed)
+        if self.seed + self.episodes - 1 > MAX_SEED:  # the last episode's closed-loop seed
+            raise ValueError(
+                f"seed {self.seed} with {self.episodes} episodes: episode i's seed is seed + i, "
+                f"and seeds must be <= {MAX_SEED} (torch's 64 bits)"
+            )
         if not (math.isfinite(self.min_future) and self.min_future >= 0):
             raise ValueError(f"min_future must be a finite number of s >= 0, got {self.min_future}")
         check_spec(self.scenario)

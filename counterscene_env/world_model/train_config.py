@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from counterscene_env.config import bounded, check_fields
+from counterscene_env.config import MAX_RUN_SEED, bounded, check_fields
 
 __all__ = ["UNSIZED_FIELDS", "TrainConfig", "learning_rate", "plain_settings"]
 
@@ -39,7 +39,8 @@ class TrainConfig:
         val_fraction: fraction of each dataset's scenes held out for validation (the last ones).
         val_windows: validation windows evaluated each time (at most).
         checkpoint_every: steps between checkpoints and validations.
-        seed: seeds data order, diffusion noise and initialisation.
+        seed: seeds data order, diffusion noise and initialisation (at most
+            ``config.MAX_RUN_SEED``: each step's draws are seeded by ``seed * 100003 + step``).
         device: torch device.
         init: a model directory (or ``"default"``, the shipped one) whose weights and action
             normalisation start the run (fine-tuning); None: a fresh model.
@@ -79,7 +80,7 @@ class TrainConfig:
     val_fraction: float = bounded(0.05, ge=0, le=0.5)
     val_windows: int = bounded(128, ge=1)
     checkpoint_every: int = bounded(500, ge=1)
-    seed: int = bounded(0, ge=0)
+    seed: int = bounded(0, ge=0, le=MAX_RUN_SEED)
     device: str = "cpu"
     init: str | None = None
     off_lane_weight: float = bounded(0.0, ge=0)
