@@ -186,7 +186,9 @@ BAD_VALUES = {
     "sampling_steps": st.one_of(st.text(max_size=3), st.booleans(), non_integral),
     "duration": st.one_of(not_a_number, non_finite, st.floats(max_value=0)),
     "realism_weight": st.one_of(not_a_number, non_finite, st.floats(max_value=-1e-9)),
-    "realism_horizon": st.one_of(not_a_number, non_finite, st.floats(max_value=0)),
+    "realism_horizon": st.one_of(  # None is a value: the whole plan
+        not_a_number.filter(lambda x: x is not None), non_finite, st.floats(max_value=0)
+    ),
     "memory_limit_gb": st.one_of(st.text(max_size=3), non_finite, st.floats(max_value=0)),
     "collision_reward": st.one_of(not_a_number, non_finite),
     "off_road_reward": st.one_of(not_a_number, non_finite),
