@@ -235,11 +235,11 @@ class CounterSceneEnv(EgoOutcomes, SimulationFrames, AbstractEnv):
         closed loop's seed (world-model noise, adversary tie-breaks; at most 64 bits) instead
         of one drawn from the env's generator; ``counterscene stress`` passes its episode
         seeds so every planner meets the same traffic randomness; ``"selection_seed"``: the
-        seed (the same range) of a ``random``
-        selector's choice (default: the closed loop's own generator), which candidate
-        rollouts share so that every candidate of an episode has the same adversary
-        (``stress/rollouts.py``). Other keys are ignored with a warning
-        (``envs.config.reset_options``). Bad input is refused before anything changes.
+        seed of a ``random`` selector's choice (the same range; default: the closed loop's
+        own generator), which candidate rollouts share so that every candidate of an
+        episode has the same adversary (``stress/rollouts.py``). Other keys are ignored
+        with a warning (``envs.config.reset_options``). Bad input is refused before anything
+        changes.
         """
         if self._constructing:
             # Stand-in egos (no road) give highway-env's per-ego spaces their length.
