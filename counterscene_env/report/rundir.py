@@ -41,7 +41,7 @@ class Run:
             run is unfinished), None when there is none.
         timings: ``timings.json`` (wall-clock figures, apart from the metrics), None when
             there is none.
-        records: the finished episodes in order, one dict each (``stress.episodes``), with
+        records: the finished episodes in order, one dict each (``stress.batch.record``), with
             JSON nulls read back as NaN, and ``min_ttc`` null as inf (no projected conflict).
         cut_lines: lines of ``episodes.jsonl`` skipped as cut short by a kill (0 or 1).
     """
