@@ -7,9 +7,16 @@ the band (``paper_tables.per_episode``: the same per-episode values as the table
 whole-episode ego-adversary rate, the causal row's paired difference to each baseline and its
 ratio to the best one. ``--split`` tells where each gap comes from: the episodes split by
 whether the two selectors chose the same adversary, and if not by the two conflict types
-(causal's first), each group's figures for both rows and its share of the gap:
+(causal's first), each group's figures for both rows and its share of the gap.
 
-    python tools/selection_horizon.py OUT/intersection [--seconds 8 9 10] [--split]
+``--mined`` restricts every row to the paper's evaluation set: the episodes whose causal
+selection on the log found a conflict. The paper's appendix treats a scene where no candidate
+survives the filtering as an invalid mining case that gets no guidance configuration; a
+``paper-tables`` run plays every episode, those included (the causal row has no adversary
+there, the baselines choose one anyway). The subset is fixed by the log before any rollout,
+so it does not depend on an outcome:
+
+    python tools/selection_horizon.py OUT/intersection [--seconds 8 9 10] [--split] [--mined]
 """
 
 from __future__ import annotations
@@ -30,6 +37,11 @@ def main() -> None:
     ap.add_argument("road", type=Path, help="a road's folder of a paper-tables run")
     ap.add_argument("--seconds", type=int, nargs="+", default=[8, 9, 10])
     ap.add_argument("--split", action="store_true", help="where each gap comes from")
+    ap.add_argument(
+        "--mined",
+        action="store_true",
+        help="only episodes where the causal mining found a conflict",
+    )
     args = ap.parse_args()
     rows = [r for r in ROWS if (args.road / r / "episodes.jsonl").exists()]
     if "counterscene" not in rows or len(rows) < 2:
@@ -37,6 +49,12 @@ def main() -> None:
     # load_run skips a last line cut short by a running or killed run, as every reader does.
     records = {r: load_run(args.road / r).records for r in rows}
     n = min(len(v) for v in records.values())  # the rows pair by episode order
+    records = {r: v[:n] for r, v in records.items()}
+    if args.mined:  # the paper's valid mining cases: a causal adversary chosen on the log
+        keep = [i for i, x in enumerate(records["counterscene"]) if x["adversary_tier"] is not None]
+        print(f"{args.road}: {len(keep)} of {n} episodes are valid mining cases")
+        records = {r: [v[i] for i in keep] for r, v in records.items()}
+        n = len(keep)
     band = tuple(args.seconds)
     values = {}
     for r in rows:
