@@ -47,3 +47,35 @@ def test_ngsim_split_refuses_a_name_it_cannot_place(tmp_path, monkeypatch):
     (tmp_path / "scenario.xml").write_text("<commonRoad/>")
     with pytest.raises(ValueError, match=r"scenario\.xml"):
         _run_tool("ngsim_split", [str(tmp_path), str(tmp_path / "out")], monkeypatch)
+
+
+def _selection_row(folder: Path, hits: list[int], tiers: list[int | None]) -> None:
+    """A paper-tables row of episodes that hit their adversary (1) or not (0) at every second;
+    ``None`` tiers are episodes with no adversary."""
+    import json
+
+    folder.mkdir(parents=True)
+    (folder / "run.json").write_text(json.dumps({"scenario": "intersection", "seed": 0}))
+    lines = []
+    for i, (hit, tier) in enumerate(zip(hits, tiers, strict=True)):
+        per = {str(s): {"ADE": 1.0, "CR_adv": float(hit) if tier else None} for s in range(1, 11)}
+        record = {"per_second": per, "adversary_tier": tier, "cr_ego_adversary": hit}
+        record |= {"episode": i, "seed": i, "scenario_id": f"s{i}", "cr": hit, "hbr_ego": 0}
+        record |= {"orr": 0, "min_ttc": 1.0, "min_clearance_adversary": 1.0}
+        lines.append(json.dumps({**record, "adversary_id": "a" if tier else None}))
+    (folder / "episodes.jsonl").write_text("\n".join(lines) + "\n")
+
+
+def test_selection_horizon_mined_keeps_the_causal_rows_valid_mining_cases(
+    tmp_path, monkeypatch, capsys
+):
+    """``--mined``: every row on the episodes where the causal selection found a conflict; the
+    baseline's hit where causal had no adversary leaves the comparison."""
+    _selection_row(tmp_path / "counterscene", [1, 1, 0, 0], [1, 2, 1, None])
+    _selection_row(tmp_path / "ttc", [1, 0, 0, 1], [1, 1, 1, 1])
+    _run_tool("selection_horizon", [str(tmp_path)], monkeypatch)
+    assert "causal / best baseline (ttc): 1.00x" in capsys.readouterr().out  # 2 hits each
+    _run_tool("selection_horizon", [str(tmp_path), "--mined"], monkeypatch)
+    out = capsys.readouterr().out
+    assert "3 of 4 episodes are valid mining cases" in out
+    assert "causal / best baseline (ttc): 2.00x" in out  # 2 hits against 1
