@@ -184,6 +184,7 @@ def check_episode_inputs(
     seed: Any,
     scene: Any,
     episode_seed: Any,
+    selection_seed: Any,
     egos: int,
     names: tuple[str, ...] = (
         "seed",
@@ -191,7 +192,6 @@ def check_episode_inputs(
         "options['episode_seed']",
         "options['selection_seed']",
     ),
-    selection_seed: Any = None,
 ) -> None:
     """Raise unless a reset's own inputs are sound: a seed (None or an int >= 0), an episode
     seed and a selection seed (each None or an int in [0, ``config.MAX_SEED``]: they seed

@@ -254,8 +254,8 @@ class CounterSceneEnv(EgoOutcomes, SimulationFrames, AbstractEnv):
             seed,
             options.get("scene"),
             options.get("episode_seed"),
+            options.get("selection_seed"),
             egos,
-            selection_seed=options.get("selection_seed"),
         )
         seed = None if seed is None else int(seed)  # numpy's ints too; Gymnasium wants int
         super().configure(candidate)

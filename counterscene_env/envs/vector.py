@@ -205,9 +205,9 @@ class CounterSceneVectorEnv(VectorEnv):
         for i in np.flatnonzero(mask):
             k = i + self.first_index
             names = (f"seed[{k}]", *(f"options[{key!r}][{k}]" for key in PER_ENV_OPTIONS.values()))
-            scene, episode_seed = per_env["scenes"][i], per_env["episode_seeds"][i]
-            selection_seed = per_env["selection_seeds"][i]
-            check_episode_inputs(seeds[i], scene, episode_seed, egos, names, selection_seed)
+            # Scene, episode seed, selection seed: PER_ENV_OPTIONS' order, as the names'.
+            inputs = (per_env[key][i] for key in PER_ENV_OPTIONS.values())
+            check_episode_inputs(seeds[i], *inputs, egos, names)
         return sim
 
     # ------------------------------------------------------------------ step
