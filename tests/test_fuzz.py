@@ -29,6 +29,7 @@ from test_reliability import snapshot
 from counterscene_env.config import GuidancePreset, Sampler, SelectionSource, Selector
 from counterscene_env.envs.single_agent import CounterSceneEnv
 from counterscene_env.envs.spaces import KINEMATIC_FEATURES
+from counterscene_env.envs.type_checks import FOREIGN_OBSERVATIONS
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -81,12 +82,27 @@ kinematics = st.fixed_dictionaries(
             st.sampled_from(KINEMATIC_FEATURES), min_size=1, max_size=7, unique=True
         ),
     },
-    optional={"normalize": st.booleans(), "absolute": st.booleans(), "see_behind": st.booleans()},
+    optional={
+        "normalize": st.booleans(),
+        "absolute": st.booleans(),
+        "see_behind": st.booleans(),
+        "order": st.sampled_from(["sorted", "shuffled"]),
+    },
+)
+lidar = st.builds(
+    lambda cells, reach: {"type": "LidarObservation", "cells": cells, "maximum_range": reach},
+    st.integers(1, 32),
+    st.floats(1.0, 100.0),
 )
 observations = st.one_of(
     kinematics,
     st.just({"type": "OccupancyGrid", "grid_size": [[-20, 20], [-20, 20]], "grid_step": [5, 5]}),
     st.just({"type": "TimeToCollision", "horizon": 5}),
+    lidar,
+    st.builds(
+        lambda parts: {"type": "TupleObservation", "observation_configs": parts},
+        st.lists(st.one_of(kinematics, lidar), min_size=1, max_size=2),
+    ),
 )
 valid_updates = st.fixed_dictionaries(
     {"observation": observations},
@@ -176,6 +192,9 @@ bad_observations = st.one_of(
         lambda o: not o["features"] or not set(o["features"]) <= set(KINEMATIC_FEATURES)
     ),
     st.builds(lambda n: {**OBS, "vehicles_count": n}, bad_count(1)),
+    st.sampled_from([{"type": kind} for kind in FOREIGN_OBSERVATIONS]),
+    st.just({"type": "TupleObservation", "observation_configs": []}),
+    st.builds(lambda order: {**OBS, "order": order}, bad_choice(["sorted", "shuffled"])),
 )
 BAD_VALUES = {
     **{k: anything_but_bool for k in ("strict_gates", "traffic_yields", "road_keeping")},
@@ -184,7 +203,7 @@ BAD_VALUES = {
     "replan_every": bad_count(1),
     "max_windows": bad_count(1),
     "sampling_steps": st.one_of(st.text(max_size=3), st.booleans(), non_integral),
-    "duration": st.one_of(not_a_number, non_finite, st.floats(max_value=0)),
+    "duration": st.one_of(not_a_number, non_finite, st.floats(max_value=0.1, exclude_max=True)),
     "realism_weight": st.one_of(not_a_number, non_finite, st.floats(max_value=-1e-9)),
     "realism_horizon": st.one_of(  # None is a value: the whole plan
         not_a_number.filter(lambda x: x is not None), non_finite, st.floats(max_value=0)

@@ -10,7 +10,8 @@ import gymnasium as gym
 import pytest
 
 from counterscene_env.cli import main
-from counterscene_env.envs.like import FOREIGN_OBSERVATIONS, config_like, highway_env_ids
+from counterscene_env.envs.like import config_like, highway_env_ids
+from counterscene_env.envs.type_checks import FOREIGN_OBSERVATIONS
 from counterscene_env.scene.shards import save_scenes
 
 
@@ -107,12 +108,15 @@ def test_a_plain_ppo_from_intersection_v1_is_stress_tested_with_one_flag(
     args += ["--episodes", "2", "--duration", "2", "--samples", "2", "--quiet"]
 
     assert main(args) == 1
-    assert "--like ENV_ID" in capsys.readouterr().err  # the mismatch names the way out
+    err = capsys.readouterr().err
+    assert "--like ENV_ID" in err  # the mismatch names the way out
+    assert "has no .env.json sidecar" in err  # and the defaults were not taken silently
 
     like = [*args, "--like", "intersection-v1"]
     assert main([*like, "--json", "--out", str(tmp_path / "serial")]) == 0
     out = capsys.readouterr()
     assert "warning: --like: intersection-v1's observation" in out.err
+    assert "sidecar" not in out.err
     assert "absolute" in out.err
     summary = json.loads(out.out)
     assert summary["episodes"] == 2 and 0.0 <= summary["cr"] <= 1.0

@@ -73,6 +73,7 @@ BAD_CONFIGS = [
     ({"num_samples": 1.5}, TypeError, ["num_samples", "1.5", "int"]),
     ({"num_samples": 10**6}, ValueError, ["num_samples", "GB", "memory_limit_gb"]),
     ({"duration": "5"}, TypeError, ["duration", "'5'"]),
+    ({"duration": 0.05}, ValueError, ["duration", ">= 0.1", "0.05"]),  # rounds to no step
     ({"guidance": ["full"]}, ValueError, ["guidance", "['full']", "none"]),
     ({"scenario": None}, ValueError, ["scenario", "None"]),
     ({"scenario": "scenarionet:"}, ValueError, ["scenario", "names no path"]),
@@ -118,6 +119,41 @@ BAD_CONFIGS = [
         {"action": {"type": "ContinuousAction", "acceleration_range": [5, -5]}},
         ValueError,
         ["action.acceleration_range", "low < high"],
+    ),
+    # highway-env types that build, then fail at the first reset (no parking goal, ...).
+    ({"observation": {"type": "KinematicsGoal"}}, ValueError, ["KinematicsGoal", "parking goal"]),
+    ({"observation": {"type": "ExitObservation"}}, ValueError, ["ExitObservation", "exit lane"]),
+    (
+        {"observation": {"type": "AttributesObservation", "attributes": ["goal"]}},
+        ValueError,
+        ["AttributesObservation", "attributes"],
+    ),
+    (
+        {"observation": {"type": "OccupancyGrid", "grid_size": [[-5, 5]]}},
+        ValueError,
+        ["observation.grid_size", "[[-5, 5]]"],
+    ),
+    (
+        {"observation": {"type": "OccupancyGrid", "grid_step": [0, 5]}},
+        ValueError,
+        ["observation.grid_step", "> 0"],
+    ),
+    (
+        {"observation": {"type": "TupleObservation", "observation_configs": []}},
+        ValueError,
+        ["observation.observation_configs", "non-empty"],
+    ),
+    (
+        {"observation": {"type": "TupleObservation", "observation_configs": [{**OBS, "clip": 1}]}},
+        TypeError,
+        ["observation.observation_configs[0].clip", "bool"],
+    ),
+    ({"observation": {**OBS, "order": "bogus"}}, ValueError, ["observation.order", "'bogus'"]),
+    ({"observation": {**OBS, "normalize": "yes"}}, TypeError, ["observation.normalize", "'yes'"]),
+    (
+        {"observation": {"type": "LidarObservation", "maximum_range": -5}},
+        ValueError,
+        ["observation.maximum_range", "-5"],
     ),
 ]
 

@@ -13,18 +13,15 @@ import warnings
 from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
-
 from counterscene_env.config import (
     check_bool,
     check_int,
     check_real,
     check_seed,
     defaults,
-    describe_value,
 )
 from counterscene_env.envs.egos import pick_egos
-from counterscene_env.envs.spaces import KINEMATIC_FEATURES
+from counterscene_env.envs.type_checks import check_pair, check_types
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import SceneSource
 from counterscene_env.sim.config import SimConfig
@@ -86,20 +83,6 @@ def sim_settings(config: Mapping[str, Any]) -> dict[str, Any]:
     return {key: config[key] for key in SIM_KEYS}
 
 
-#: highway-env's observation and action types (``observation_factory``, ``action_factory``).
-OBSERVATION_TYPES = (
-    "Kinematics",
-    "OccupancyGrid",
-    "TimeToCollision",
-    "KinematicsGoal",
-    "GrayscaleObservation",
-    "AttributesObservation",
-    "MultiAgentObservation",
-    "TupleObservation",
-    "LidarObservation",
-    "ExitObservation",
-)
-ACTION_TYPES = ("ContinuousAction", "DiscreteAction", "DiscreteMetaAction", "MultiAgentAction")
 _BOOL_KEYS = (
     "prefetch_scenes",
     "terminate_on_collision",
@@ -219,32 +202,8 @@ def validate(config: Mapping[str, Any], env: Any = None) -> None:
             key, the value and what is allowed.
     """
     _check_scalars(config)
-    n = check_int("controlled_vehicles", config["controlled_vehicles"], ge=1)
-    obs = _check_type_dict("observation", config["observation"], OBSERVATION_TYPES)
-    act = _check_type_dict("action", config["action"], ACTION_TYPES)
-    multi = (obs["type"] == "MultiAgentObservation", act["type"] == "MultiAgentAction")
-    if n > 1 and not all(multi):
-        raise ValueError(
-            f"controlled_vehicles = {n} needs highway-env's multi-agent types: observation "
-            "{'type': 'MultiAgentObservation', 'observation_config': {...}} and action "
-            "{'type': 'MultiAgentAction', 'action_config': {...}} (or use "
-            "counterscene_env.parallel_env)"
-        )
-    if multi[0]:
-        obs = _check_type_dict(
-            "observation.observation_config", obs.get("observation_config"), OBSERVATION_TYPES
-        )
-    if multi[1]:
-        act = _check_type_dict("action.action_config", act.get("action_config"), ACTION_TYPES)
-    _check_observation(obs)
-    _check_action(act, "action.action_config" if multi[1] else "action")
-    if obs["type"] == "TimeToCollision" and act["type"] != "DiscreteMetaAction":
-        raise ValueError(
-            "the TimeToCollision observation needs the DiscreteMetaAction action type "
-            "(its grid is over the ego's target speeds)"
-        )
-    if env is not None:
-        _build_on_scratch(env, config)
+    egos = check_int("controlled_vehicles", config["controlled_vehicles"], ge=1)
+    check_types(config, egos, env)
     SimConfig.from_mapping(sim_settings(config))  # types, ranges and choices (raises)
 
 
@@ -264,10 +223,10 @@ def _check_scalars(config: Mapping[str, Any]) -> None:
         if size % 16:
             raise ValueError(f"{key} must be a multiple of 16 px (video codecs), got {size}")
     check_real("scaling", config["scaling"], gt=0)
-    _check_pair("centering_position", config["centering_position"])
+    check_pair("centering_position", config["centering_position"])
     for key in _REWARD_KEYS:
         check_real(key, config[key])
-    lo, hi = _check_pair("reward_speed_range", config["reward_speed_range"])
+    lo, hi = check_pair("reward_speed_range", config["reward_speed_range"])
     if not hi > lo:
         raise ValueError(f"reward_speed_range must be [low, high] m/s, got {[lo, hi]}")
     for key in _BOOL_KEYS:
@@ -275,100 +234,3 @@ def _check_scalars(config: Mapping[str, Any]) -> None:
             check_bool(key, config[key])
     if not isinstance(config["model"], str) or not config["model"]:
         raise TypeError(f"model must be 'default' or a model directory, got {config['model']!r}")
-
-
-def _check_pair(key: str, value: Any) -> tuple[float, float]:
-    if isinstance(value, np.ndarray) and value.ndim == 1:
-        value = value.tolist()
-    if not isinstance(value, list | tuple) or len(value) != 2:
-        raise ValueError(f"{key} must be a list of two numbers, got {value!r}")
-    return check_real(f"{key}[0]", value[0]), check_real(f"{key}[1]", value[1])
-
-
-def _check_type_dict(key: str, value: Any, types: tuple[str, ...]) -> Mapping[str, Any]:
-    """A highway-env type config: a dict whose ``type`` is one of ``types``."""
-    if not isinstance(value, Mapping):
-        raise TypeError(
-            f"{key} must be a dict with a 'type' (one of {list(types)}), {describe_value(value)}"
-        )
-    if value.get("type") not in types:
-        raise ValueError(
-            f"{key} needs a 'type', one of {list(types)}; got {value.get('type')!r} in {value!r}"
-        )
-    return value
-
-
-def _check_observation(obs: Mapping[str, Any]) -> None:
-    """Counts and features of an observation config (highway-env accepts an empty feature
-    list or a count of 0, and fails later or returns observations outside the space)."""
-    for key in ("vehicles_count", "cells", "horizon"):
-        if key in obs:
-            check_int(f"observation.{key}", obs[key], ge=1)
-    if obs["type"] in ("Kinematics", "KinematicsGoal") and "features" in obs:
-        features = obs["features"]
-        if not isinstance(features, list | tuple) or not features:
-            raise ValueError(
-                f"observation.features must be a non-empty list of {list(KINEMATIC_FEATURES)}, "
-                f"got {features!r}"
-            )
-        unknown = [f for f in features if f not in KINEMATIC_FEATURES]
-        if unknown:
-            raise ValueError(
-                f"observation.features has unknown names {unknown}; valid: "
-                f"{list(KINEMATIC_FEATURES)}"
-            )
-    ranges = obs.get("features_range")
-    if ranges is not None:  # feature -> [low, high], the normalisation's range
-        if not isinstance(ranges, Mapping):
-            raise TypeError(
-                "observation.features_range must be a dict of feature -> [low, high], "
-                f"{describe_value(ranges)}"
-            )
-        for name, pair in ranges.items():
-            _check_range_pair(f"observation.features_range.{name}", pair)
-
-
-def _check_range_pair(key: str, value: Any) -> None:
-    lo, hi = _check_pair(key, value)
-    if not hi > lo:
-        raise ValueError(f"{key} must be [low, high] with low < high, got {list(value)}")
-
-
-def _check_action(act: Mapping[str, Any], name: str) -> None:
-    """The ranges and speeds inside action config ``name``, which highway-env takes on trust
-    (a reversed range flips the controls; an empty ``target_speeds`` fails at the first
-    step)."""
-    for key in ("acceleration_range", "steering_range", "speed_range"):
-        if act.get(key) is not None:
-            _check_range_pair(f"{name}.{key}", act[key])
-    if act.get("target_speeds") is not None:
-        speeds = act["target_speeds"]
-        if isinstance(speeds, np.ndarray) and speeds.ndim == 1:
-            speeds = speeds.tolist()
-        if not isinstance(speeds, list | tuple) or not speeds:
-            raise ValueError(
-                f"{name}.target_speeds must be a non-empty list of speeds in m/s, got {speeds!r}"
-            )
-        for i, v in enumerate(speeds):
-            check_real(f"{name}.target_speeds[{i}]", v, ge=0)
-    if "actions_per_axis" in act:
-        check_int(f"{name}.actions_per_axis", act["actions_per_axis"], ge=1)
-
-
-def _build_on_scratch(env: Any, config: Mapping[str, Any]) -> None:
-    """Build the observation and action types and their spaces without keeping them: a config
-    highway-env cannot build is refused before it is applied. (Keys a type does not know are
-    ignored, as highway-env does: its own env configs carry some, e.g. ``flatten``.)"""
-    from highway_env.envs.common.action import action_factory
-    from highway_env.envs.common.observation import observation_factory
-
-    for key, factory in (("observation", observation_factory), ("action", action_factory)):
-        # The multi-agent types hold one config per ego: build that one.
-        name, part = key, config[key]
-        if f"{key}_config" in part:
-            name, part = f"{key}.{key}_config", part[f"{key}_config"]
-        try:
-            built = factory(env, dict(part))
-            built.space()
-        except Exception as exc:  # highway-env's own message, with the key
-            raise ValueError(f"{name} {part!r} cannot be built: {exc}") from None

@@ -15,16 +15,10 @@ import warnings
 from typing import Any
 
 from counterscene_env.envs.config import SIMULATION_FREQUENCY
+from counterscene_env.envs.type_checks import FOREIGN_OBSERVATIONS
 
 #: The CounterScene-v0 keys borrowed: what a policy sees, what it outputs and how often.
 BORROWED_KEYS = ("observation", "action", "policy_frequency")
-#: highway-env observation types made of what only their own env has (parking, exit,
-#: lane-keeping): no CounterScene scene can fill them.
-FOREIGN_OBSERVATIONS = {
-    "KinematicsGoal": "a parking goal",
-    "ExitObservation": "the exit env's exit lane",
-    "AttributesObservation": "the lane-keeping env's state attributes",
-}
 
 
 def highway_env_ids() -> list[str]:

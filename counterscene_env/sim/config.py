@@ -21,6 +21,7 @@ from counterscene_env.config import (
     choice_field,
     from_mapping,
 )
+from counterscene_env.scene.core import DEFAULT_DT
 
 
 @dataclass(frozen=True)
@@ -28,7 +29,8 @@ class SimConfig:
     """Closed-loop settings.
 
     Attributes:
-        duration: closed-loop length after "now" [s]; capped by the log's length.
+        duration: closed-loop length after "now" [s], at least one 0.1 s step; capped by
+            the log's length.
         replan_every: steps between world-model replans (5 = 0.5 s).
         num_samples: samples per replan; the one with the lowest guidance loss plus
             realism cost is kept (paper protocol: 16). 2 samples with 2 warm steps were as
@@ -120,7 +122,7 @@ class SimConfig:
             half of this machine's total memory, whatever is free).
     """
 
-    duration: float = bounded(10.0, gt=0)
+    duration: float = bounded(10.0, ge=DEFAULT_DT)  # a shorter one rounds to no step
     replan_every: int = bounded(5, ge=1)
     num_samples: int = bounded(2, ge=1)
     selector: str = choice_field(Selector, Selector.CAUSAL)
