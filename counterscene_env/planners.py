@@ -107,6 +107,13 @@ class IDMPlanner:
         return self.follower.act(state)
 
 
+def sb3_sidecar(path: str | os.PathLike) -> Path:
+    """Where an SB3 policy ``PATH.zip`` keeps the env config it was trained with
+    (``PATH.env.json``, written by the recipes in ``agents/``)."""
+    path = Path(path)
+    return path.with_name(path.name.removesuffix(".zip") + ".env.json")
+
+
 class SB3Policy:
     """A Stable-Baselines3 policy from its ``.zip``, for prediction, loaded without unpickling.
 
@@ -155,7 +162,7 @@ class SB3Policy:
                 "without unpickling; retrain with plain policy_kwargs (net_arch lists, numbers)"
             )
         self.policy_kwargs = kwargs
-        sidecar = self.path.with_name(self.path.name.removesuffix(".zip") + ".env.json")
+        sidecar = sb3_sidecar(self.path)
         self.env_config = json.loads(sidecar.read_text()) if sidecar.is_file() else {}
         self.policy = None
 

@@ -14,11 +14,12 @@ from counterscene_env.cli.common import (
     add_model_flag,
     add_quiet_flag,
     add_seed_flag,
-    fmt,
     int_at_least,
     json_safe,
     load_model,
 )
+from counterscene_env.cli.stress_text import print_stress
+from counterscene_env.planners import sb3_sidecar
 
 
 def add_stress(sub) -> None:
@@ -234,7 +235,7 @@ def _cmd_stress(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(json_safe({**summary, "timings": times})))
         return 0
-    _print_stress(args, config, summary, times)
+    print_stress(config, summary, times, args.scenario, args.workers)
     return 0
 
 
@@ -272,6 +273,13 @@ def _policy_env_config(args: argparse.Namespace, sb3: bool) -> dict | None:
             print(f"counterscene stress: warning: --like: {w.message}", file=sys.stderr)
     if args.env_config:
         out.update(_read_env_config(args.env_config))
+    if not out and not sb3_sidecar(args.planner.removeprefix("sb3:")).is_file():
+        print(
+            f"counterscene stress: note: {args.planner} has no .env.json sidecar and no --like "
+            "or --env-config is given: the policy runs on CounterScene-v0's default "
+            "observation, action and policy_frequency (10 Hz)",
+            file=sys.stderr,
+        )
     return out or None
 
 
@@ -354,47 +362,3 @@ def _stress_stopped(args: argparse.Namespace, config, log, wall: float, before: 
         )
     print(f"counterscene stress: stopped. {msg}", file=sys.stderr)
     return STOPPED_EXIT_CODE
-
-
-def _print_stress(args: argparse.Namespace, config, summary: dict, times: dict) -> None:
-    """The text report: the run, the paper's table row, the rates, the timing line."""
-    sim = config.sim
-    print(
-        f"{summary['episodes']} episodes of {args.scenario}, planner {args.planner}, selector "
-        f"{sim.selector}, guidance {sim.guidance} (source {sim.selection_source}, "
-        f"{sim.num_samples} samples)"
-        + (
-            f", the most severe of {config.rollouts} rollouts per episode"
-            if config.rollouts > 1
-            else ""
-        )
-    )
-    print(f"{'':8s}" + "".join(f"{k:>10s}" for k in ("ADE", "FDE", "ORR", "HBR", "CR")))
-    for name, row in summary["horizons"].items():
-        print(
-            f"{name:8s}"
-            + "".join(f"{fmt(row[k]):>10s}" for k in ("ADE", "FDE", "ORR", "HBR", "CR"))
-        )
-    print(
-        f"episode CR {fmt(summary['cr'])}, ego-adversary CR {fmt(summary['cr_ego_adversary'])}, "
-        f"non-ego CR {fmt(summary['cr_non_ego'])} (not in the log "
-        f"{fmt(summary['cr_non_ego_new'])}), "
-        f"mean min TTC {fmt(summary['mean_min_ttc'])} s, min clearance to adversary "
-        f"{fmt(summary['mean_min_clearance_adversary'])} m, fallbacks {summary['fallbacks']}"
-    )
-    # A real map lacks the car parks and driveways where logged cars stand: the log's own
-    # positions on the same map are the reference for the simulation's off-road share.
-    print(
-        f"off the road: ORR {fmt(summary['orr'])} (the log itself "
-        f"{fmt(summary['orr_log'])}), moving vehicles {fmt(summary['orr_moving'])} (the log "
-        f"itself {fmt(summary['orr_moving_log'])})"
-    )
-    if summary["episodes_cut_at_log_end"]:
-        print(f"{summary['episodes_cut_at_log_end']} episodes ended with their log (short logs)")
-    if summary["scenes_too_short"]:
-        print(f"{summary['scenes_too_short']} logs too short for an episode were skipped")
-    print(
-        f"{fmt(times['seconds_per_episode'])} s per episode, "
-        f"{fmt(times['seconds_per_replan'])} s per replan"
-        + (f" ({args.workers} workers)" if args.workers > 1 else "")
-    )

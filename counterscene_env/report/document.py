@@ -78,6 +78,11 @@ def unit_label(unit: str) -> str:
     return "%" if unit in PERCENT_UNITS else unit
 
 
+def count(n: int, noun: str) -> str:
+    """``"1 episode"``, ``"4 episodes"``."""
+    return f"{n} {noun}{'s' * (n != 1)}"
+
+
 def fmt(value: float | None, unit: str = "") -> str:
     """A number for a table, without its unit (the header says it): 3 significant digits,
     ``n/a`` for NaN or None, ``∞`` for inf; a rate or fraction as a percentage."""

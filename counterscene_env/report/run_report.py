@@ -21,6 +21,7 @@ from counterscene_env.report.document import (
     Paragraph,
     Table,
     Video,
+    count,
     fmt,
     interval,
     unit_label,
@@ -64,9 +65,9 @@ def what_was_run(run: Run, command: str) -> list[Block]:
     ident, sim = run.identity, run.sim()
     planned = run.planned_episodes
     done = len(run.records)
-    count = f"{done} episodes" + (f" of {planned}" if planned and planned != done else "")
+    episodes = count(done, "episode") + (f" of {planned}" if planned and planned != done else "")
     items = [
-        f"scenario: {ident.get('scenario', '?')}; {count} (episode i: scene i of the source, "
+        f"scenario: {ident.get('scenario', '?')}; {episodes} (episode i: scene i of the source, "
         f"noise seed {ident.get('seed', '?')} + i)",
         f"ego planner: {ident.get('planner', '?')}; world model: {ident.get('model', '?')}",
         f"adversary: selector {sim.get('selector', '?')} on the {sim.get('selection_source', '?')}"
@@ -244,7 +245,8 @@ def document(
     title = f"Stress report: {run.name}"
     cr = EPISODE_METRICS["cr"].estimate(run.records)
     head = Paragraph(
-        f"{len(run.records)} episodes; the ego collided in {fmt(cr.value, 'rate')} % of them "
+        f"{count(len(run.records), 'episode')}; the ego collided in "
+        f"{fmt(cr.value, 'rate')} % of them "
         f"(95 % interval {fmt(cr.low, 'rate')}-{fmt(cr.high, 'rate')} %)."
     )
     return [

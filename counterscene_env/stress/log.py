@@ -25,6 +25,21 @@ TIMING_KEYS = ("seconds", "replan_seconds")
 TIMINGS_FILE = "episode_timings.jsonl"
 
 
+def differences(have: dict, want: dict, prefix: str = "") -> list[str]:
+    """Where two run identities differ, field by field (nested settings as ``sim.guidance``):
+    ``"sim.guidance: 'full' there, 'none' now"``, sorted by field."""
+    out = []
+    for key in sorted(set(have) | set(want), key=str):
+        a, b = have.get(key), want.get(key)
+        if a == b:
+            continue
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += differences(a, b, f"{prefix}{key}.")
+        else:
+            out.append(f"{prefix}{key}: {a!r} there, {b!r} now")
+    return out
+
+
 class EpisodeLog:
     """A stress run's durable record: ``DIR/episodes.jsonl``, one line per finished episode.
 
@@ -70,11 +85,9 @@ class EpisodeLog:
         if run.is_file():
             have = json.loads(run.read_text())
             if have != self.identity:
-                keys = sorted(
-                    k for k in set(have) | set(self.identity) if have.get(k) != self.identity.get(k)
-                )
+                diff = "; ".join(differences(have, self.identity))
                 raise ValueError(
-                    f"{self.dir} holds a stress run with other settings ({', '.join(keys)}): "
+                    f"{self.dir} holds a stress run with other settings ({diff}): "
                     "use another --out, or delete it to start over"
                 )
         self._kept: list[str] | None = None  # set when the file's last line was cut short
