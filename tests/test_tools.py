@@ -5,7 +5,9 @@ from __future__ import annotations
 import runpy
 from pathlib import Path
 
+import numpy as np
 import pytest
+from conftest import make_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -79,3 +81,25 @@ def test_selection_horizon_mined_keeps_the_causal_rows_valid_mining_cases(
     out = capsys.readouterr().out
     assert "3 of 4 episodes are valid mining cases" in out
     assert "causal / best baseline (ttc): 2.00x" in out  # 2 hits against 1
+
+
+def test_early_speed_track_alone_scores_the_continued_acceleration_against_the_log():
+    """The track-alone baselines behind the hypotheses table's row on recent accelerations:
+    on a car that keeps accelerating, continuing its recent acceleration beats constant
+    velocity, and on a car that holds its speed both are exact."""
+    tool = runpy.run_path(str(ROOT / "tools" / "early_speed.py"), run_name="early_speed")
+    t = np.arange(80) * 0.1
+    speeds = np.stack([np.full(80, 10.0), 5.0 + 1.0 * t])  # held, and +1 m/s^2 throughout
+    x = np.stack([10.0 * t, 5.0 * t + 0.5 * t**2])
+    scene = make_scene(np.stack([x, np.stack([np.zeros(80), np.full(80, 4.0)])], -1), speeds=speeds)
+    rows = tool["track_alone"]([scene], [(0, 30), (0, 40)], [0.5, 1.0])
+    assert len(rows["recent"]) == 4  # two cars, two windows each
+    np.testing.assert_allclose(rows["recent"], [0.0, 1.0, 0.0, 1.0], atol=1e-9)
+    np.testing.assert_allclose(rows["next"], rows["recent"], atol=1e-9)
+    held, accelerating = slice(0, None, 2), slice(1, None, 2)
+    for tau in (0.0, 0.5, 1.0):
+        assert rows[tau][held].max() < 0.02  # the held speed: every baseline on the log
+    cv, continued = rows[0.0][accelerating].mean(), rows[1.0][accelerating].mean()
+    assert continued < 0.7 * cv  # a continuation of 1 m/s^2 over 1 s closes much of the gap
+    # A window without 3 s of logged future is not scored.
+    assert len(tool["track_alone"]([scene], [(0, 60)], [0.5])["recent"]) == 0

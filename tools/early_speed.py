@@ -9,6 +9,11 @@ Moving agents (3 m/s or more now) with their whole 3 s logged, every second of e
 - the first action token's acceleration (0-0.4 s) against the log's: spread, correlation;
 - by speed now: the log's and one sample's speed change over 3 s (mean, spread,
   correlation) and the ADE ratio to constant velocity;
+- what the track alone says (no model): the correlation of the log's speed change over the
+  last 0.5 s of history with its change over the first 0.4 s of the future, and constant
+  velocity against a continuation of that recent acceleration decaying with time constant
+  ``tau`` (``--tau``); on real logs a driver's last half second of speed change says nothing
+  about the next, where highway-env's IDM traffic continues it;
 - ADE over 0-3 s with the sample's accelerations over its first ``--tokens`` tokens scaled by
   each ``--scale`` and rolled out again (1: the sample re-rolled from its token means, the
   reference; a diagnosis, not a sampler setting: how much of the
@@ -53,6 +58,52 @@ def scaled_rollouts(model, state, acts, tokens: int, scales) -> dict[float, torc
         a[..., :tokens, 0] *= f
         out[f] = model.rollout(model.normalize(a), state)
     return out
+
+
+def track_alone(scenes, jobs, taus) -> dict[str, np.ndarray]:
+    """Per moving vehicle-window of ``jobs`` with 0.5 s of history and 3 s of future logged:
+    ``recent`` and ``next`` accelerations [m/s^2] (the speed change over the last 0.5 s of
+    history and over the first 0.4 s of the future), and per ``tau`` (0: constant velocity)
+    the displacement errors ``[n, HORIZON]`` m of a drive along the heading "now" at the
+    speed ``v(t) = v0 + a tau (1 - exp(-t / tau))``, ``a`` the recent acceleration."""
+    out: dict = {"recent": [], "next": []} | {tau: [] for tau in (0.0, *taus)}
+    for k, now in jobs:
+        sc = scenes[k]
+        if now < 5 or now + HORIZON >= sc.num_steps:
+            continue
+        dt = sc.dt
+        t = np.arange(1, HORIZON + 1) * dt
+        span = slice(now - 5, now + HORIZON + 1)
+        for i in np.nonzero(sc.valid[:, span].all(-1) & (sc.speeds[:, now] >= MOVING_SPEED))[0]:
+            if sc.agent_types[i] != "vehicle":
+                continue
+            v, p = sc.speeds[i], sc.positions[i]
+            recent = (v[now] - v[now - 5]) / (5 * dt)
+            out["recent"].append(recent)
+            out["next"].append((v[now + 4] - v[now]) / (4 * dt))
+            heading = np.array([np.cos(sc.yaws[i, now]), np.sin(sc.yaws[i, now])])
+            for tau in out.keys() - {"recent", "next"}:
+                gain = tau * (1 - np.exp(-t / tau)) if tau else 0.0 * t
+                travelled = np.cumsum(np.maximum(v[now] + recent * gain, 0.0)) * dt
+                drive = p[now] + travelled[:, None] * heading
+                out[tau].append(np.linalg.norm(drive - p[now + 1 : now + HORIZON + 1], axis=-1))
+    return {key: np.array(val) for key, val in out.items()}
+
+
+def report_track_alone(rows: dict[str, np.ndarray], taus) -> None:
+    recent, nxt, cv = rows["recent"], rows["next"], rows[0.0]
+    print(
+        f"the track alone ({len(recent)} moving vehicle-windows): correlation of the last 0.5 s's "
+        f"speed change with the next 0.4 s's {np.corrcoef(recent, nxt)[0, 1]:+.2f} "
+        f"(std {recent.std():.2f} and {nxt.std():.2f} m/s^2)"
+    )
+    for tau in taus:
+        e = rows[tau]
+        print(
+            f"  recent acceleration continued, decaying over {tau:g} s: error at 0.5 s "
+            f"{e[:, 4].mean() / cv[:, 4].mean():.2f}x constant velocity's, ADE 0-3 s "
+            f"{e.mean() / cv.mean():.3f}x"
+        )
 
 
 def measure(model, scenes, seed: int, tokens: int, scales) -> dict[str, list]:
@@ -152,9 +203,15 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tokens", type=int, default=3, help="early tokens scaled (default 3)")
     ap.add_argument("--scale", type=float, nargs="+", default=[1.0, 0.5, 0.0])
+    ap.add_argument("--tau", type=float, nargs="+", default=[0.5, 1.0], help="decay times [s]")
     args = ap.parse_args()
+    if min(args.tau) <= 0:
+        ap.error(f"--tau: decay times must be > 0 s, got {min(args.tau):g}")
     model = load_model(args.model).eval()
-    rows = measure(model, list(stored_scenes(args.source)), args.seed, args.tokens, args.scale)
+    scenes = list(stored_scenes(args.source))
+    jobs = window_jobs(scenes, model.config.history_steps, 10, HORIZON)
+    report_track_alone(track_alone(scenes, jobs, args.tau), args.tau)
+    rows = measure(model, scenes, args.seed, args.tokens, args.scale)
     report(rows, args.tokens, args.scale)
 
 
