@@ -97,7 +97,7 @@ def test_early_speed_track_alone_scores_the_continued_acceleration_against_the_l
     np.testing.assert_allclose(rows["recent"], [0.0, 1.0, 0.0, 1.0], atol=1e-9)
     np.testing.assert_allclose(rows["next"], rows["recent"], atol=1e-9)
     held, accelerating = slice(0, None, 2), slice(1, None, 2)
-    for tau in (0.0, 0.5, 1.0):
+    for tau in (0.0, 0.5, 1.0, "positions"):
         assert rows[tau][held].max() < 0.02  # the held speed: every baseline on the log
     cv, continued = rows[0.0][accelerating].mean(), rows[1.0][accelerating].mean()
     assert continued < 0.7 * cv  # a continuation of 1 m/s^2 over 1 s closes much of the gap

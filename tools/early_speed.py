@@ -13,13 +13,15 @@ Moving agents (3 m/s or more now) with their whole 3 s logged, every second of e
   last 0.5 s of history with its change over the first 0.4 s of the future, and constant
   velocity against a continuation of that recent acceleration decaying with time constant
   ``tau`` (``--tau``); on real logs a driver's last half second of speed change says nothing
-  about the next, where highway-env's IDM traffic continues it;
+  about the next, where highway-env's IDM traffic continues it; and constant velocity at
+  the speed of the last 0.5 s of positions instead of the logged speed now;
 - ADE over 0-3 s with the sample's accelerations over its first ``--tokens`` tokens scaled by
   each ``--scale`` and rolled out again (1: the sample re-rolled from its token means, the
   reference; a diagnosis, not a sampler setting: how much of the
   error is the sample's early speed changes):
 
     python tools/early_speed.py scenarionet:path/to/nuscenes_mini_scenarionet [--model DIR]
+    python tools/early_speed.py SOURCE --track-only     # the track-alone lines only
 """
 
 from __future__ import annotations
@@ -65,8 +67,10 @@ def track_alone(scenes, jobs, taus) -> dict[str, np.ndarray]:
     ``recent`` and ``next`` accelerations [m/s^2] (the speed change over the last 0.5 s of
     history and over the first 0.4 s of the future), and per ``tau`` (0: constant velocity)
     the displacement errors ``[n, HORIZON]`` m of a drive along the heading "now" at the
-    speed ``v(t) = v0 + a tau (1 - exp(-t / tau))``, ``a`` the recent acceleration."""
-    out: dict = {"recent": [], "next": []} | {tau: [] for tau in (0.0, *taus)}
+    speed ``v(t) = v0 + a tau (1 - exp(-t / tau))``, ``a`` the recent acceleration; and
+    (``"positions"``) of constant velocity at the speed of the last 0.5 s of positions
+    instead of the logged speed now."""
+    out: dict = {"recent": [], "next": [], "positions": []} | {tau: [] for tau in (0.0, *taus)}
     for k, now in jobs:
         sc = scenes[k]
         if now < 5 or now + HORIZON >= sc.num_steps:
@@ -82,11 +86,15 @@ def track_alone(scenes, jobs, taus) -> dict[str, np.ndarray]:
             out["recent"].append(recent)
             out["next"].append((v[now + 4] - v[now]) / (4 * dt))
             heading = np.array([np.cos(sc.yaws[i, now]), np.sin(sc.yaws[i, now])])
-            for tau in out.keys() - {"recent", "next"}:
+            truth = p[now + 1 : now + HORIZON + 1]
+            for tau in out.keys() - {"recent", "next", "positions"}:
                 gain = tau * (1 - np.exp(-t / tau)) if tau else 0.0 * t
                 travelled = np.cumsum(np.maximum(v[now] + recent * gain, 0.0)) * dt
                 drive = p[now] + travelled[:, None] * heading
-                out[tau].append(np.linalg.norm(drive - p[now + 1 : now + HORIZON + 1], axis=-1))
+                out[tau].append(np.linalg.norm(drive - truth, axis=-1))
+            speed = np.linalg.norm(p[now] - p[now - 5]) / (5 * dt)
+            drive = p[now] + (speed * t)[:, None] * heading
+            out["positions"].append(np.linalg.norm(drive - truth, axis=-1))
     return {key: np.array(val) for key, val in out.items()}
 
 
@@ -96,6 +104,11 @@ def report_track_alone(rows: dict[str, np.ndarray], taus) -> None:
         f"the track alone ({len(recent)} moving vehicle-windows): correlation of the last 0.5 s's "
         f"speed change with the next 0.4 s's {np.corrcoef(recent, nxt)[0, 1]:+.2f} "
         f"(std {recent.std():.2f} and {nxt.std():.2f} m/s^2)"
+    )
+    e = rows["positions"]
+    print(
+        f"  constant velocity at the speed of the last 0.5 s of positions, not the logged "
+        f"speed now: ADE 0-3 s {e.mean() / cv.mean():.3f}x"
     )
     for tau in taus:
         e = rows[tau]
@@ -204,6 +217,7 @@ def main() -> None:
     ap.add_argument("--tokens", type=int, default=3, help="early tokens scaled (default 3)")
     ap.add_argument("--scale", type=float, nargs="+", default=[1.0, 0.5, 0.0])
     ap.add_argument("--tau", type=float, nargs="+", default=[0.5, 1.0], help="decay times [s]")
+    ap.add_argument("--track-only", action="store_true", help="what the track alone says; no model")
     args = ap.parse_args()
     if min(args.tau) <= 0:
         ap.error(f"--tau: decay times must be > 0 s, got {min(args.tau):g}")
@@ -211,6 +225,8 @@ def main() -> None:
     scenes = list(stored_scenes(args.source))
     jobs = window_jobs(scenes, model.config.history_steps, 10, HORIZON)
     report_track_alone(track_alone(scenes, jobs, args.tau), args.tau)
+    if args.track_only:
+        return
     rows = measure(model, scenes, args.seed, args.tokens, args.scale)
     report(rows, args.tokens, args.scale)
 
