@@ -79,6 +79,12 @@ def test_errors_are_one_clear_line(tmp_path):
         (["stress", "--scenario", "merge", "--videos", "2"], ["--videos needs --out"]),
         (["train", "--data", "X", "--out", "Y", "--steps", "0"], ["steps must be >= 1"]),
         (["train", "--data", "X", "--out", "Y", "--lr", "-1"], ["lr must be >= 0"]),
+        (["train", "--data", "X", "--out", "Y", "--device", "banana"], ["--device", "'banana'"]),
+        (["generate", "--scenario", "merge", "--out", "Y", "--duration", "inf"], ["duration"]),
+        (["generate", "--scenario", "merge", "--out", "Y", "--duration", "2"], [">= 13.0"]),
+        (["generate", "--from-scenarionet", "X", "--out", "Y", "--scenes", "2"], ["--scenes"]),
+        (["generate", "--scenario", "merge", "--out", "Y", "--all-egos"], ["--all-egos"]),
+        (["inspect", "X", "--smooth", "nan"], ["--smooth", "nan"]),
     ],
 )
 def test_bad_flags_are_refused_in_one_line_before_any_work(tmp_path, args, words):

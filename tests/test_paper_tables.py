@@ -152,3 +152,11 @@ def test_paper_tables_on_stored_logs_resumes_and_writes_timings_apart(generated,
     assert main([*args, "--episodes", "5", "--tables-only"]) == 0
     assert {r: (out / "logs.npz" / r / "episodes.jsonl").read_text() for r in real} == lines
     assert "the episodes run so far of 5 per row" in (out / "tables.md").read_text()
+    # Fewer episodes than a row holds is refused: its summary would disagree with its file.
+    summaries = {r: (out / "logs.npz" / r / "metrics.json").read_text() for r in real}
+    capsys.readouterr()
+    assert main([*args, "--episodes", "1"]) == 1
+    assert "holds 2 finished episodes of this row, more than --episodes 1" in (
+        capsys.readouterr().err
+    )
+    assert {r: (out / "logs.npz" / r / "metrics.json").read_text() for r in real} == summaries

@@ -124,6 +124,10 @@ def test_bad_input_is_refused(env):
         counterscene_env.parallel_env(num_egos=0)
     with pytest.raises(ValueError, match="num_egos"):
         counterscene_env.parallel_env(num_egos=2.0)
+    with pytest.raises(ValueError, match="num_egos"):
+        counterscene_env.parallel_env(num_egos=True)
+    with pytest.raises(TypeError, match="options must be a dict or None"):
+        env.reset(options="scene")
     with pytest.raises(ValueError, match="controlled_vehicles"):
         counterscene_env.parallel_env(num_egos=2, config={"controlled_vehicles": 2})
 

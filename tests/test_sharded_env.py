@@ -65,6 +65,8 @@ def test_a_refused_call_changes_no_env_of_any_worker():
         venv.reset(seed=0, options={"episode_seeds": [1, 2, -1]})
     with pytest.raises(ValueError, match="one entry per env"):
         venv.reset(seed=[1, 2])
+    with pytest.raises(TypeError, match="options must be a dict or None"):
+        venv.reset(options="scenes")
     with pytest.raises(ValueError, match="closed-loop settings"):
         venv.reset(options={"reset_mask": np.array([False, True, True]), "config": {"eta": 0.5}})
     assert venv.get_attr("steps") == steps

@@ -156,9 +156,17 @@ def test_bad_input_is_refused_and_changes_nothing():
         ({"episode_seeds": [1, 2**64]}, r"episode_seeds'\]\[1\]"),
         ({"selection_seeds": [-1, None]}, r"selection_seeds'\]\[0\]"),
         ({"selection_seed": 3}, "selection_seeds"),
+        ("scenes", "options must be a dict or None"),
     ]:
         with pytest.raises((ValueError, TypeError), match=match):
             venv.reset(seed=0, options=options)
+    # A misspelt option is named once, with the vector env's own keys, and ignored.
+    with pytest.warns(
+        UserWarning, match=r"\['episode_seedz'\]; known: \['config', 'reset_mask', 'scenes'"
+    ) as caught:
+        venv.reset(seed=0, options={"episode_seedz": [1, 2]})
+    assert len([w for w in caught if "unknown options" in str(w.message)]) == 1
+    steps = [env.episode.t for env in venv.envs]
     with pytest.raises(ValueError, match="one entry per env"):
         venv.reset(seed=[1, 2, 3])
     with pytest.raises(ValueError, match=r"seed\[1\]"):

@@ -44,6 +44,21 @@ def int_at_least(low: int, high: int | None = None):
     return parse
 
 
+def float_in(low: float, high: float):
+    """An ``argparse`` type: a finite float in ``[low, high]`` (the parser names the flag)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+        if not low <= value <= high:  # NaN fails this too
+            raise argparse.ArgumentTypeError(f"must be in [{low:g}, {high:g}], got {text}")
+        return value
+
+    return parse
+
+
 def add_seed_flag(p: argparse.ArgumentParser, default: int, help: str) -> None:
     """Add ``--seed N`` (an int in [0, ``config.MAX_RUN_SEED``]: a first seed, from which the
     episodes', scenes' or training steps' seeds are derived) with the given default and help."""

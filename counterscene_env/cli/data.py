@@ -13,10 +13,16 @@ from counterscene_env.cli.common import (
     add_json_flag,
     add_quiet_flag,
     add_seed_flag,
+    float_in,
     fmt,
     json_safe,
 )
 from counterscene_env.config import Yielding
+
+#: The longest ``inspect --smooth`` window [s]: longer ones average the braking away.
+MAX_SMOOTH = 5.0
+#: ``counterscene generate``'s defaults for generated traffic (a conversion refuses others).
+GENERATE_DEFAULTS = {"scenes": 100, "seed": 0, "duration": 13.0}
 
 
 def add_generate(sub) -> None:
@@ -47,10 +53,20 @@ def add_generate(sub) -> None:
         action="store_true",
         help="CommonRoad: one scene per logged vehicle that can be the ego, not one per file",
     )
-    gen.add_argument("--scenes", type=int, default=100, help="scenes to generate (default 100)")
-    add_seed_flag(gen, 0, "first seed (default 0)")
+    gen.add_argument(
+        "--scenes",
+        type=int,
+        default=GENERATE_DEFAULTS["scenes"],
+        help="--scenario: scenes to generate (default 100)",
+    )
+    add_seed_flag(gen, GENERATE_DEFAULTS["seed"], "--scenario: first seed (default 0)")
     gen.add_argument("--out", required=True, metavar="DIR", help="output dataset directory")
-    gen.add_argument("--duration", type=float, default=13.0, help="log length in s (default 13)")
+    gen.add_argument(
+        "--duration",
+        type=float,
+        default=GENERATE_DEFAULTS["duration"],
+        help="--scenario: log length in s (default 13, the least: 3 s history + 10 s future)",
+    )
     gen.add_argument(
         "--yielding",
         choices=Yielding.values(),
@@ -72,8 +88,24 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         generate_dataset,
     )
 
-    if args.yielding != Yielding.HIGHWAY_ENV and not args.scenario:
-        raise ValueError("--yielding applies to generated traffic (--scenario), not to logs")
+    if not args.scenario:  # a conversion takes every log: the generator's flags mean nothing
+        given = [
+            flag
+            for flag, value, default in (
+                ("--scenes", args.scenes, GENERATE_DEFAULTS["scenes"]),
+                ("--seed", args.seed, GENERATE_DEFAULTS["seed"]),
+                ("--duration", args.duration, GENERATE_DEFAULTS["duration"]),
+                ("--yielding", args.yielding, Yielding.HIGHWAY_ENV.value),
+            )
+            if value != default
+        ]
+        if given:
+            raise ValueError(
+                f"only generated traffic (--scenario) takes {', '.join(given)}; a conversion "
+                "takes every log as it is"
+            )
+    if args.all_egos and not args.from_commonroad:
+        raise ValueError("--all-egos applies to --from-commonroad only")
     start = time.perf_counter()
     blocks = {"shard_size": args.shard_size, "workers": args.workers, "progress": not args.quiet}
     if args.from_commonroad:
@@ -113,9 +145,10 @@ def add_inspect(sub) -> None:
     add_json_flag(ins)
     ins.add_argument(
         "--smooth",
-        type=float,
+        type=float_in(0.0, MAX_SMOOTH),
         default=0.0,
-        help="acceleration smoothing window for HBR, s (0.5 suits nuScenes' interpolated logs)",
+        help="acceleration smoothing window for HBR, s, at most 5 (0.5 suits nuScenes' "
+        "interpolated logs)",
     )
     ins.set_defaults(func=_cmd_inspect)
 

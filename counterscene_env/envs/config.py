@@ -147,20 +147,31 @@ PER_ENV_OPTIONS = {
 }
 
 
-def reset_options(options: Any) -> dict:
-    """``reset``'s ``options`` as a new dict (None: empty); anything but a dict is refused,
-    and unknown keys are named in a warning (a misspelt option would otherwise silently run
-    another episode; PettingZoo's API test sends one)."""
+#: The keys of a vector env's ``reset(options=...)`` (``envs/vector.py``): a config update
+#: for every env, the envs to reset, and one value per env of each per-env option.
+VECTOR_RESET_OPTIONS = ("config", "reset_mask", *PER_ENV_OPTIONS.values())
+
+
+def reset_options(
+    options: Any,
+    known: tuple[str, ...] = RESET_OPTIONS,
+    kept: tuple[str, ...] = (),
+    stacklevel: int = 3,
+) -> dict:
+    """``reset``'s ``options`` as a new dict (None: empty) of its ``known`` keys and the
+    ``kept`` ones (which the caller refuses with a message of its own); anything but a dict
+    is refused, and other keys are named in a warning and dropped (a misspelt option would
+    otherwise silently run another episode; PettingZoo's API test sends one)."""
     if options is not None and not isinstance(options, Mapping):
         raise TypeError(f"options must be a dict or None, got {options!r}")
     options = dict(options or {})
-    unknown = sorted(set(options) - set(RESET_OPTIONS), key=str)
+    unknown = sorted(set(options) - set(known) - set(kept), key=str)
     if unknown:
         warnings.warn(
-            f"reset ignores the unknown options {unknown}; known: {list(RESET_OPTIONS)}",
-            stacklevel=3,
+            f"reset ignores the unknown options {unknown}; known: {list(known)}",
+            stacklevel=stacklevel,
         )
-    return options
+    return {key: value for key, value in options.items() if key not in unknown}
 
 
 def check_episode_inputs(

@@ -23,6 +23,7 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
+from counterscene_env.envs.config import reset_options
 from counterscene_env.envs.single_agent import CounterSceneEnv
 from counterscene_env.envs.spaces import check_action
 
@@ -48,7 +49,7 @@ class CounterSceneParallelEnv(ParallelEnv):
     def __init__(
         self, num_egos: int = 1, config: dict | None = None, render_mode: str | None = None
     ) -> None:
-        if not isinstance(num_egos, int) or num_egos < 1:
+        if isinstance(num_egos, bool) or not isinstance(num_egos, int) or num_egos < 1:
             raise ValueError(f"num_egos must be an int >= 1, got {num_egos!r}")
         config = dict(config or {})
         if "controlled_vehicles" in config:
@@ -110,7 +111,8 @@ class CounterSceneParallelEnv(ParallelEnv):
     def reset(
         self, seed: int | None = None, options: dict | None = None
     ) -> tuple[dict[str, Any], dict[str, dict]]:
-        update = (options or {}).get("config", {})
+        options = reset_options(options)
+        update = options.get("config", {})
         if not isinstance(update, Mapping):
             raise TypeError(f"options['config'] must be a dict of config keys, got {update!r}")
         fixed = sorted({"observation", "action", "controlled_vehicles"} & set(update))

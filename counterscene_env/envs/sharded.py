@@ -40,7 +40,7 @@ from counterscene_env.envs.batching import (
     reset_mask,
     unbatch_info,
 )
-from counterscene_env.envs.config import PER_ENV_OPTIONS
+from counterscene_env.envs.config import PER_ENV_OPTIONS, VECTOR_RESET_OPTIONS, reset_options
 from counterscene_env.envs.vector import CounterSceneVectorEnv
 
 #: Errors a worker hands back as they are: bad input, named by its key or env.
@@ -141,7 +141,8 @@ class ShardedVectorEnv(VectorEnv):
         """:meth:`CounterSceneVectorEnv.reset`, every shard's envs at once (same arguments,
         same errors: nothing changes when any shard refuses)."""
         seeds = expand_seeds(seed, self.num_envs)
-        options = dict(options or {})
+        # A single env's keys are kept, to be refused with the per-env key's name.
+        options = reset_options(options, VECTOR_RESET_OPTIONS, tuple(PER_ENV_OPTIONS), 4)
         mask = reset_mask(options.pop("reset_mask", None), self.num_envs, self._started)
         per_env = {
             k: per_env_values(options.pop(k, None), k, self.num_envs)

@@ -49,7 +49,12 @@ from counterscene_env.envs.batching import (
     per_env_values,
     reset_mask,
 )
-from counterscene_env.envs.config import PER_ENV_OPTIONS, check_episode_inputs
+from counterscene_env.envs.config import (
+    PER_ENV_OPTIONS,
+    VECTOR_RESET_OPTIONS,
+    check_episode_inputs,
+    reset_options,
+)
 from counterscene_env.envs.single_agent import CounterSceneEnv
 from counterscene_env.scene.prefetch import one_thread_if
 from counterscene_env.sim import ClosedLoop, SimConfig
@@ -170,7 +175,8 @@ class CounterSceneVectorEnv(VectorEnv):
         """The checked inputs of a reset: ``(seeds, mask, per_env, options, sim)``, the
         options without the per-env keys, ``sim`` the closed-loop settings after it."""
         seeds = expand_seeds(seed, self.num_envs)
-        options = dict(options or {})
+        # A single env's keys are kept, to be refused with the per-env key's name.
+        options = reset_options(options, VECTOR_RESET_OPTIONS, tuple(PER_ENV_OPTIONS), 4)
         mask = reset_mask(options.pop("reset_mask", None), self.num_envs, self._started)
         per_env = {
             k: per_env_values(options.pop(k, None), k, self.num_envs)

@@ -25,7 +25,7 @@ from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from pathlib import Path
 
-from counterscene_env.config import check_int
+from counterscene_env.config import check_int, check_real
 from counterscene_env.scene.blocks import (
     convert_commonroad_block,
     convert_scenarionet_block,
@@ -56,9 +56,10 @@ def generate_dataset(
 ) -> dict:
     """Generate ``scenes`` safe scenes of a highway-env scenario into ``out``; returns the
     manifest. ``yielding``: how intersection traffic gives way (``GeneratorConfig.yielding``)."""
-    from counterscene_env.scene.highway import GENERATOR_VERSION, check_yielding
+    from counterscene_env.scene.highway import GENERATOR_VERSION, MIN_DURATION, check_yielding
 
     check_yielding(scenario, yielding)
+    duration = check_real("duration", duration, ge=MIN_DURATION)  # before --out is made
     for key, value in (("scenes", scenes), ("shard_size", shard_size), ("workers", workers)):
         check_int(key, value, ge=1)
     check_int("seed", seed, ge=0)
@@ -162,9 +163,11 @@ def _build(
     """Run blocks (in parallel) until ``target`` scenes (or all ``num_blocks``) are done."""
     from tqdm.auto import tqdm
 
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file, not a directory")
     manifest = open_manifest(out, params)
     refuse_shrinking(out, manifest, target)
+    out.mkdir(parents=True, exist_ok=True)  # every check is done: a refused run writes nothing
     done = reusable_blocks(out, manifest, target)
     bar = tqdm(
         total=target, disable=not progress, unit="scene", desc=params.get("scenario", "convert")

@@ -184,6 +184,30 @@ def _check_dirs_differ(specs: Sequence[str]) -> None:
         raise ValueError(f"two scenarios would share the output folder {twice}: rename one")
 
 
+def _open_logs(
+    out: str | Path, plan: list[tuple[str, str, StressConfig]], model: str, refuse_longer: bool
+) -> list[EpisodeLog]:
+    """Each planned row's log in ``out`` (nothing is written). ``refuse_longer``: a row that
+    holds more finished episodes than asked for is refused (its summary would count
+    ``--episodes`` and its episode file every recorded one)."""
+    logs = []
+    for where, name, config in plan:
+        log = EpisodeLog(
+            Path(out) / where / name,
+            run_identity(config, model),
+            resume=True,
+            summarize=lambda r, c=config: summarize(r[: c.episodes], c),
+        )
+        if refuse_longer and len(log.records) > config.episodes:
+            raise ValueError(
+                f"{log.dir} holds {len(log.records)} finished episodes of this row, more than "
+                f"--episodes {config.episodes}: rerun with --episodes {len(log.records)} or "
+                "more, or pick another --out"
+            )
+        logs.append(log)
+    return logs
+
+
 def run_rows(
     out: str | Path,
     specs: Sequence[str],
@@ -226,16 +250,11 @@ def run_rows(
             if config.is_sb3:
                 raise ValueError("paper-tables runs the built-in planners (idm, log, ...)")
             plan.append((scenario_dir(spec), name, config))
+    logs = _open_logs(out, plan, model, refuse_longer=run)
     world_model = load_model(model) if workers == 1 and run else None
     results: dict[str, dict[str, list[dict]]] = {}
-    for where, name, config in plan:
-        directory = Path(out) / where / name
-        log = EpisodeLog(
-            directory,
-            run_identity(config, model),
-            resume=True,
-            summarize=lambda r, c=config: summarize(r[: c.episodes], c),
-        )
+    for (where, name, config), log in zip(plan, logs, strict=True):
+        directory = log.dir
         done = len(log.records[: config.episodes])
         if not run:
             if done:

@@ -128,11 +128,27 @@ def validate(
     return {"val_ade": total / max(n, 1), "val_fde": fde / max(nf, 1)}
 
 
+def torch_device(name: str) -> torch.device:
+    """``--device``: a torch device this machine has.
+
+    Raises:
+        ValueError: naming the flag (an unknown name, or CUDA / MPS that is not here)."""
+    try:
+        device = torch.device(name)
+    except RuntimeError as exc:
+        raise ValueError(f"--device {name!r} is not a torch device: {exc}") from None
+    here = {"cuda": torch.cuda.is_available, "mps": torch.backends.mps.is_available}
+    if device.type in here and not here[device.type]():
+        raise ValueError(f"--device {name!r}: this torch build or machine has no {device.type}")
+    return device
+
+
 def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     """Run (or resume) training; returns the final record (losses, validation, wall time)."""
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
-    device = torch.device(cfg.device)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file, not a directory")
+    device = torch_device(cfg.device)
     torch.manual_seed(cfg.seed)
     model_cfg = get_preset(cfg.preset).replace(**dict(cfg.model_overrides))
 
@@ -158,7 +174,16 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             quota = max(1, cfg.val_windows // len(cfg.data))
             val_parts.append(_windows(ds, val[:: max(1, len(val) // quota)][:quota]))
     if not train_parts:
-        raise ValueError(f"no training windows in {list(cfg.data)}")
+        held = sum(len(p["history"]) for p in val_parts)
+        raise ValueError(
+            f"no training windows in {[str(d) for d in cfg.data]} ({sum(sizes)} scenes): "
+            + (
+                f"the last {cfg.val_fraction:g} of each dataset's scenes (at least one) "
+                "validates, which leaves none to train on; give more scenes"
+                if held
+                else "no scene is long enough for a window (history plus --min-future)"
+            )
+        )
     train_data = {k: torch.cat([p[k] for p in train_parts]).to(device) for k in train_parts[0]}
     val_data = (
         {k: torch.cat([p[k] for p in val_parts]).to(device) for k in val_parts[0]}
@@ -293,6 +318,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         )
     if cfg.init is not None:  # provenance of a fine-tune: where it started
         info.update(init=cfg.init, init_training=dict(start.training_info))
+    out.mkdir(parents=True, exist_ok=True)  # every check is done: a refused run writes nothing
     bar = None
     if progress:
         from tqdm import tqdm
