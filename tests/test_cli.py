@@ -97,3 +97,20 @@ def test_bad_flags_are_refused_in_one_line_before_any_work(tmp_path, args, words
     for word in words:
         assert word in out.stderr, (word, out.stderr)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["X"]  # nothing written
+
+
+def test_ctrl_c_stops_a_resumable_command_in_one_line(monkeypatch, capsys):
+    """Ctrl-C in generate, train or paper-tables: no traceback, the shell's exit code, and how
+    to go on (what finished is on disk: rerunning the command resumes)."""
+    from counterscene_env.scene import datagen
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(datagen, "generate_dataset", interrupted)
+    code = main(["generate", "--scenario", "merge", "--scenes", "1", "--out", "never"])
+    assert code == 130
+    assert capsys.readouterr().err.strip() == (
+        "counterscene generate: stopped. The finished shards are kept: rerun the same command "
+        "to go on"
+    )

@@ -122,9 +122,9 @@ def test_bad_input_is_refused(env):
     assert env.core.steps == 0, "refused actions do not advance the episode"
     with pytest.raises(ValueError, match="num_egos"):
         counterscene_env.parallel_env(num_egos=0)
-    with pytest.raises(ValueError, match="num_egos"):
+    with pytest.raises(TypeError, match="num_egos"):
         counterscene_env.parallel_env(num_egos=2.0)
-    with pytest.raises(ValueError, match="num_egos"):
+    with pytest.raises(TypeError, match="num_egos"):
         counterscene_env.parallel_env(num_egos=True)
     with pytest.raises(TypeError, match="options must be a dict or None"):
         env.reset(options="scene")

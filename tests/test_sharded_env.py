@@ -60,6 +60,8 @@ def test_a_refused_call_changes_no_env_of_any_worker():
     bad[2, 0] = np.nan  # only the second worker's env is bad: the first must not move
     with pytest.raises(ValueError, match="NaN"):
         venv.step(bad)
+    with pytest.raises(ValueError, match=r"one row per env"):  # as with one process
+        venv.step(np.zeros(2, np.float32))
     # An error names the env by its index in the whole vector env, not in its worker.
     with pytest.raises(ValueError, match=r"episode_seeds'\]\[2\]"):
         venv.reset(seed=0, options={"episode_seeds": [1, 2, -1]})

@@ -173,6 +173,8 @@ def test_bad_input_is_refused_and_changes_nothing():
         venv.reset(seed=[1, -2])
     with pytest.raises(ValueError, match="num_envs"):
         CounterSceneVectorEnv(0)
+    with pytest.raises(TypeError, match="num_envs"):  # a wrong type is a TypeError, as in configs
+        CounterSceneVectorEnv("2")
     assert [env.episode.t for env in venv.envs] == steps
     venv.close()
 

@@ -367,7 +367,9 @@ def test_init_starts_from_a_model_and_refuses_another_architecture(
         )
         == 1
     )
-    assert "another architecture" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "another architecture" in err
+    assert "d_model 96 there, 32 here" in err  # the field that differs, both values
 
 
 def test_init_adds_the_agent_centric_map_but_never_drops_it(dataset, tmp_path, capsys):

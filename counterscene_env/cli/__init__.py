@@ -20,6 +20,14 @@ import argparse
 import sys
 
 from counterscene_env.cli import bench, data, evaluate, model, paper, report, run
+from counterscene_env.cli.run import STOPPED_EXIT_CODE
+
+#: What a command stopped by Ctrl-C keeps: each of these rerun as it was goes on from there.
+RESUMABLE = {
+    "generate": ". The finished shards are kept: rerun the same command to go on",
+    "train": ". The last checkpoint is kept: rerun the same command to go on from it",
+    "paper-tables": ". The finished episodes are kept: rerun the same command to go on",
+}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -36,6 +44,10 @@ def main(argv: list[str] | None = None) -> int:
         # Errors users can act on: one clear line, no traceback.
         print(f"counterscene {args.command}: error: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:  # Ctrl-C (stress handles its own: it writes a partial report)
+        hint = RESUMABLE.get(args.command, "")
+        print(f"counterscene {args.command}: stopped{hint}", file=sys.stderr)
+        return STOPPED_EXIT_CODE
 
 
 def _parser() -> argparse.ArgumentParser:

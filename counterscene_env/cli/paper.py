@@ -26,7 +26,7 @@ def add_paper_tables(sub) -> None:
             "distance, TTC and causal selectors with full guidance; the guidance ablations) "
             "on the same episodes, one stress run per row and scenario in OUT/<scenario>/"
             "<row>/ (resumable: rerun the command to continue), and write OUT/tables.md and "
-            "OUT/tables.json: every figure with its 95 %% interval, every row paired with "
+            "OUT/tables.json: every figure with its 95 % interval, every row paired with "
             "CounterScene, the paper's own figures beside ours (docs/reproducing_the_paper.md)."
         ),
     )

@@ -11,6 +11,8 @@ from typing import Any
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
+from counterscene_env.config import check_int
+
 
 def _info_array(value: Any, n: int) -> np.ndarray:
     """An empty info array for ``n`` envs of ``value``'s kind (as Gymnasium makes them)."""
@@ -143,10 +145,8 @@ def unbatch_info(infos: dict, i: int) -> dict:
 
 def check_count(value: Any, name: str, minimum: int) -> int:
     """``value`` if it is an int of at least ``minimum`` (``num_envs``, ``workers``), else a
-    ``ValueError`` naming it."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
-    return value
+    ``TypeError`` (not an int) or ``ValueError`` (too small) naming it."""
+    return check_int(name, value, ge=minimum)
 
 
 def check_vector_modes(

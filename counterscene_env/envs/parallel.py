@@ -23,6 +23,7 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
+from counterscene_env.config import check_int
 from counterscene_env.envs.config import reset_options
 from counterscene_env.envs.single_agent import CounterSceneEnv
 from counterscene_env.envs.spaces import check_action
@@ -49,8 +50,7 @@ class CounterSceneParallelEnv(ParallelEnv):
     def __init__(
         self, num_egos: int = 1, config: dict | None = None, render_mode: str | None = None
     ) -> None:
-        if isinstance(num_egos, bool) or not isinstance(num_egos, int) or num_egos < 1:
-            raise ValueError(f"num_egos must be an int >= 1, got {num_egos!r}")
+        num_egos = check_int("num_egos", num_egos, ge=1)
         config = dict(config or {})
         if "controlled_vehicles" in config:
             raise ValueError("set the number of egos with num_egos, not controlled_vehicles")

@@ -41,7 +41,7 @@ from counterscene_env.envs.batching import (
     unbatch_info,
 )
 from counterscene_env.envs.config import PER_ENV_OPTIONS, VECTOR_RESET_OPTIONS, reset_options
-from counterscene_env.envs.vector import CounterSceneVectorEnv
+from counterscene_env.envs.vector import CounterSceneVectorEnv, check_batch_shape
 
 #: Errors a worker hands back as they are: bad input, named by its key or env.
 USER_ERRORS = (ValueError, TypeError, RuntimeError, AttributeError)
@@ -182,6 +182,7 @@ class ShardedVectorEnv(VectorEnv):
         """:meth:`CounterSceneVectorEnv.step`, every shard's envs side by side."""
         if not self._started:
             raise RuntimeError("call reset() before step()")
+        check_batch_shape(self.action_space, actions)
         actions = list(iterate(self.action_space, actions))
         if len(actions) != self.num_envs:
             raise ValueError(f"step needs {self.num_envs} actions, got {len(actions)}")

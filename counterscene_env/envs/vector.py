@@ -64,6 +64,21 @@ from counterscene_env.world_model.checkpoint import shared_model
 FIXED_KEYS = ("observation", "action", "controlled_vehicles", "model")
 
 
+def check_batch_shape(action_space: spaces.Space, actions: Any) -> None:
+    """Raise unless a batch of ``Box`` actions has the batched space's shape (one row per
+    env), named as a batch (e.g. one env's action given for all)."""
+    if not isinstance(action_space, spaces.Box):
+        return
+    try:
+        shape = np.shape(actions)
+    except ValueError:  # ragged
+        shape = "a ragged nesting"
+    if shape != action_space.shape:
+        raise ValueError(
+            f"actions must have shape {action_space.shape} (one row per env), got {shape}"
+        )
+
+
 class CounterSceneVectorEnv(VectorEnv):
     """N ``CounterScene-v0`` envs whose traffic is replanned in one batched world-model call.
 
@@ -274,17 +289,7 @@ class CounterSceneVectorEnv(VectorEnv):
         raises before ``reset`` and, autoreset disabled, for an ended env."""
         if not self._started:
             raise RuntimeError("call reset() before step()")
-        if isinstance(self.action_space, spaces.Box):
-            # A batch of the wrong shape, named as a batch (e.g. one env's action for all).
-            try:
-                shape = np.shape(actions)
-            except ValueError:  # ragged
-                shape = "a ragged nesting"
-            if shape != self.action_space.shape:
-                raise ValueError(
-                    f"actions must have shape {self.action_space.shape} (one row per env), "
-                    f"got {shape}"
-                )
+        check_batch_shape(self.action_space, actions)
         actions = list(iterate(self.action_space, actions))
         if len(actions) != self.num_envs:
             raise ValueError(f"step needs {self.num_envs} actions, got {len(actions)}")

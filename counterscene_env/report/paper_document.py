@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from counterscene_env.metrics import json_safe
-from counterscene_env.report.document import fmt, interval
+from counterscene_env.report.document import count, fmt, interval
 from counterscene_env.report.paper_tables import (
     COLUMNS,
     EPISODE,
@@ -78,7 +78,7 @@ def markdown(built: dict, meta: dict, seconds: dict[str, dict[str, float]]) -> s
         + (
             f"the episodes run so far of {meta['episodes']} per row (n below)"
             if meta.get("tables_only")
-            else f"{meta['episodes']} episodes per row"
+            else f"{count(meta['episodes'], 'episode')} per row"
         )
         + " from seed "
         f"{meta['seed']} (every row on the same scenes and noise), model `{meta['model']}`"

@@ -65,6 +65,8 @@ def save_model(
     tmp_w, tmp_c = out / (WEIGHTS + ".tmp"), out / (CONFIG + ".tmp")
     save_file(tensors, str(tmp_w), metadata={"format": FORMAT, "version": str(VERSION)})
     tmp_c.write_text(json.dumps(meta, indent=1) + "\n")
+    # safetensors writes its file owner-only (0600); give it the mode every other file gets.
+    os.chmod(tmp_w, os.stat(tmp_c).st_mode & 0o777)
     os.replace(tmp_w, out / WEIGHTS)
     os.replace(tmp_c, out / CONFIG)
     return out

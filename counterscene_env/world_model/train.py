@@ -15,6 +15,7 @@ FDE at its end [m], over valid agents.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import os
 import platform
@@ -246,9 +247,14 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         if grown:
             same = same.replace(num_blocks=model_cfg.num_blocks)
         if same != model_cfg:
+            differ = ", ".join(
+                f"{f.name} {getattr(same, f.name)!r} there, {getattr(model_cfg, f.name)!r} here"
+                for f in dataclasses.fields(model_cfg)
+                if getattr(same, f.name) != getattr(model_cfg, f.name)
+            )
             raise ValueError(
                 f"--init model {cfg.init!r} has another architecture than preset "
-                f"{cfg.preset!r} with the given overrides"
+                f"{cfg.preset!r} with the given overrides ({differ})"
             )
         normalization = normalization or start.normalization
         model = WorldModel(model_cfg, normalization).to(device)
