@@ -160,3 +160,16 @@ def test_paper_tables_on_stored_logs_resumes_and_writes_timings_apart(generated,
         capsys.readouterr().err
     )
     assert {r: (out / "logs.npz" / r / "metrics.json").read_text() for r in real} == summaries
+
+
+def test_a_mean_difference_over_a_handful_of_episodes_is_never_called_outside_the_noise():
+    """Two episodes that differ alike bootstrap to the one-point interval [d, d]: that is no
+    evidence, and the verdict must not say otherwise (the rate's McNemar test agrees)."""
+    from counterscene_env.report import stats
+
+    few = stats.paired_mean([0.0, 0.0], [1.0, 1.0])
+    assert few.low == few.high == 1.0 and not few.significant
+    many = stats.paired_mean([0.0] * 10, [1.0] * 10)
+    assert many.significant
+    one = stats.paired_mean([0.0], [1.0])
+    assert np.isnan(one.low) and not one.significant

@@ -218,5 +218,8 @@ def _paired_lines(rows: list[str], cells: dict, column: str, labels: dict) -> st
 
 
 def _signed(x: float) -> str:
-    """A difference with its sign, 3 significant digits; rounding noise shows as 0."""
+    """A difference with its sign, 3 significant digits; rounding noise shows as 0, no
+    value (an interval of one pair) as n/a."""
+    if math.isnan(x):
+        return "n/a"
     return "0" if abs(x) < 1e-9 else f"{x:+.3g}"

@@ -32,6 +32,10 @@ BOOTSTRAP = 2000
 BOOTSTRAP_SEED = 0
 #: Significance level of the paired tests (two-sided).
 ALPHA = 0.05
+#: The fewest pairs whose bootstrap interval may call a mean difference outside the noise:
+#: the bootstrap of a handful of pairs has a handful of values (two pairs that differ alike
+#: give the interval [d, d]), so it cannot tell a difference from chance.
+MIN_BOOTSTRAP_PAIRS = 10
 
 RATE_METHOD = "Wilson score"
 MEAN_METHOD = f"percentile bootstrap ({BOOTSTRAP} resamples)"
@@ -117,7 +121,7 @@ class Paired:
         a_only, b_only: for rates, pairs flagged in A only and in B only (the discordant
             pairs McNemar's test reads); None for means.
         significant: the difference is outside the noise (rates: p < :data:`ALPHA`; means:
-            the interval excludes 0).
+            the interval excludes 0 and there are at least :data:`MIN_BOOTSTRAP_PAIRS`).
         test: the decision rule, in words.
     """
 
@@ -153,9 +157,17 @@ def paired_mean(a: Sequence[float], b: Sequence[float]) -> Paired:
     paired bootstrap interval; significant when it excludes 0."""
     x, y = _pairs(a, b)
     diff, lo, hi = _paired_bootstrap(y - x)
-    significant = bool(x.size) and (lo > 0 or hi < 0)
+    significant = x.size >= MIN_BOOTSTRAP_PAIRS and (lo > 0 or hi < 0)
     return Paired(
-        diff, lo, hi, int(x.size), None, None, None, significant, "paired bootstrap excludes 0"
+        diff,
+        lo,
+        hi,
+        int(x.size),
+        None,
+        None,
+        None,
+        bool(significant),
+        f"paired bootstrap excludes 0, over at least {MIN_BOOTSTRAP_PAIRS} pairs",
     )
 
 
