@@ -64,6 +64,10 @@ def test_errors_are_one_clear_line(tmp_path):
     bad.write_bytes(b"not a pickle at all")
     out = _run("inspect", str(bad))
     assert out.returncode == 1 and bad.name in out.stderr and "Traceback" not in out.stderr
+    xml = tmp_path / "scenario.xml"  # CommonRoad: read by converting, said so
+    xml.write_text("<commonRoad/>")
+    out = _run("inspect", str(xml))
+    assert out.returncode == 1 and "--from-commonroad" in out.stderr
 
 
 @pytest.mark.parametrize(

@@ -16,6 +16,7 @@ from counterscene_env.scene.shards import save_scenes
 from counterscene_env.world_model.bench import synthetic_batch
 from counterscene_env.world_model.checkpoint import load_model
 from counterscene_env.world_model.config import preset
+from counterscene_env.world_model.train_config import TrainConfig
 
 TINY = ["--set", "d_model=32", "--set", "num_heads=2", "--set", "num_blocks=1"]
 
@@ -587,3 +588,7 @@ def test_train_mixture_settings_are_checked(dataset, tmp_path, capsys):
     assert main([*base, "--smooth-tracks", str(dataset), "--smooth-sigma", "0"]) == 1
     assert "smooth_sigma" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+    # The same dataset spelt with a trailing slash is the same dataset.
+    config = TrainConfig(data=(f"{dataset}/",), out="o", smooth_tracks=(str(dataset),))
+    assert config.marked("smooth_tracks", f"{dataset}/")
+    assert not config.marked("agent_centred", f"{dataset}/")

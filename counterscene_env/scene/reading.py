@@ -34,6 +34,13 @@ def iter_scenes(
             raise FileNotFoundError(f"{path}: no dataset manifest and no .pkl files")
     elif path.suffix == ".pkl":
         files = [path]
+    elif path.is_file() and path.suffix != ".npz":
+        hint = {
+            ".xml": "CommonRoad scenarios are read by converting them: counterscene generate "
+            "--from-commonroad DIR --out DATASET",
+            ".json": "give the dataset directory that holds it",
+        }.get(path.suffix, "give a dataset directory, a shard .npz or ScenarioNet .pkl files")
+        raise ValueError(f"{path}: not a file of scenes; {hint}")
     else:
         yield from _iter_stored(path)
         return

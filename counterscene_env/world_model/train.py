@@ -157,13 +157,13 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     train_parts, val_parts, sources, sizes, per_source = [], [], [], [], []
     for j, d in enumerate(cfg.data):
         scenes = load_sources(d)
-        if d in cfg.smooth_tracks:
+        if cfg.marked("smooth_tracks", d):
             scenes = [smooth_tracks(s, cfg.smooth_sigma) for s in scenes]
         ds = SceneWindowDataset(
             scenes,
             probe.window_config(cfg.window_stride),
             min_future_steps=cfg.min_future_steps,
-            centres="agents" if d in cfg.agent_centred else "ego",
+            centres="agents" if cfg.marked("agent_centred", d) else "ego",
         )
         rows, val = _split(ds, cfg.val_fraction)
         sizes.append(len(ds.scenes))

@@ -7,6 +7,7 @@ its learning-rate schedule, and the plain form a resumed run is compared against
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -95,8 +96,9 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)  # every number by type and range, naming the field
+        data = {os.path.normpath(d) for d in self.data}
         for key in ("agent_centred", "smooth_tracks"):
-            unknown = [d for d in getattr(self, key) if d not in self.data]
+            unknown = [d for d in getattr(self, key) if os.path.normpath(d) not in data]
             if unknown:
                 raise ValueError(f"{key} names datasets not in data: {unknown}")
         if self.data_weights is not None:
@@ -107,6 +109,11 @@ class TrainConfig:
                 )
             if any(not x >= 0 for x in w) or sum(w) <= 0:
                 raise ValueError(f"data_weights must be >= 0 with a positive sum, got {list(w)}")
+
+    def marked(self, key: str, dataset: str) -> bool:
+        """Whether ``dataset`` of ``data`` is among ``key``'s (``agent_centred``,
+        ``smooth_tracks``), as a path: ``data/x/`` and ``data/x`` are one dataset."""
+        return os.path.normpath(dataset) in {os.path.normpath(d) for d in getattr(self, key)}
 
 
 # ModelConfig fields that size no tensor, so ``--init`` may change them: which lanes the window
