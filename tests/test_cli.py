@@ -89,6 +89,8 @@ def test_errors_are_one_clear_line(tmp_path):
         (["generate", "--from-scenarionet", "X", "--out", "Y", "--scenes", "2"], ["--scenes"]),
         (["generate", "--scenario", "merge", "--out", "Y", "--all-egos"], ["--all-egos"]),
         (["inspect", "X", "--smooth", "nan"], ["--smooth", "nan"]),
+        (["evaluate-model", "--data", "X", "--seed", "5"], ["--seed", "--scenario"]),
+        (["bench", "--preset", "default", "--model", "X"], ["--preset", "--model"]),
     ],
 )
 def test_bad_flags_are_refused_in_one_line_before_any_work(tmp_path, args, words):

@@ -69,6 +69,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from counterscene_env.world_model.bench import bench_model
 
     if args.preset:
+        if args.model != "default":
+            raise ValueError("--preset times an untrained model of that preset: drop --model")
         from counterscene_env.world_model.config import preset
         from counterscene_env.world_model.model import WorldModel
 

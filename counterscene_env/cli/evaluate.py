@@ -19,6 +19,8 @@ from counterscene_env.cli.common import (
     load_model,
 )
 
+#: ``evaluate-model``'s first seed of generated scenes: the held-out range (training from 0).
+EVALUATION_SEED = 100000
 #: Scenes ``evaluate-model`` generates, or reads from each ``--data`` dataset, unless
 #: ``--scenes`` says otherwise (real-log sources default to all their scenes).
 DEFAULT_EVAL_SCENES = 50
@@ -53,7 +55,7 @@ def add_evaluate_model(sub) -> None:
         help=f"scenes: generated, or the first of each --data dataset (default "
         f"{DEFAULT_EVAL_SCENES}); the first of a real-log source (default: all)",
     )
-    add_seed_flag(ev, 100000, "first seed (default 100000)")
+    add_seed_flag(ev, EVALUATION_SEED, "--scenario: first seed (default 100000)")
     add_model_flag(ev)
     ev.add_argument("--samples", type=int, default=6, help="samples per scene (default 6)")
     ev.add_argument(
@@ -92,6 +94,10 @@ def _evaluation_scenes(args: argparse.Namespace) -> list:
     or ``--commonroad``), capped by ``--scenes``."""
     if args.scenes is not None and args.scenes < 1:
         raise ValueError(f"--scenes must be >= 1, got {args.scenes}")
+    if args.seed != EVALUATION_SEED and not args.scenario:
+        raise ValueError(
+            "--seed picks generated scenes (--scenario); stored scenes are read in order"
+        )
     if args.scenario:
         from tqdm.auto import tqdm
 
