@@ -75,8 +75,10 @@ def add_generate(sub) -> None:
         "3 s ahead; the default) or gap-acceptance (a smooth stop before the crossing, "
         "decided 6 s ahead)",
     )
-    gen.add_argument("--shard-size", type=int, default=50, help="seeds or files per shard")
-    gen.add_argument("--workers", type=int, default=1, help="parallel worker processes")
+    gen.add_argument(
+        "--shard-size", type=int, default=50, help="seeds or files per shard (default 50)"
+    )
+    gen.add_argument("--workers", type=int, default=1, help="parallel worker processes (default 1)")
     add_quiet_flag(gen)
     gen.set_defaults(func=_cmd_generate)
 

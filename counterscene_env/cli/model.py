@@ -38,7 +38,9 @@ def add_train(sub) -> None:
         type=int,
         help="step from which the learning rate falls linearly to lr/10 at --steps (default: none)",
     )
-    tr.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
+    tr.add_argument(
+        "--checkpoint-every", type=int, default=500, help="steps between checkpoints (default 500)"
+    )
     add_seed_flag(tr, 0, "seed (default 0)")
     tr.add_argument("--device", default="cpu", help="torch device (default cpu)")
     tr.add_argument(

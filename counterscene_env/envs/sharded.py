@@ -41,7 +41,7 @@ from counterscene_env.envs.batching import (
     unbatch_info,
 )
 from counterscene_env.envs.config import PER_ENV_OPTIONS, VECTOR_RESET_OPTIONS, reset_options
-from counterscene_env.envs.vector import CounterSceneVectorEnv, check_batch_shape
+from counterscene_env.envs.vector import CounterSceneVectorEnv, check_batch_shape, ended_error
 
 #: Errors a worker hands back as they are: bad input, named by its key or env.
 USER_ERRORS = (ValueError, TypeError, RuntimeError, AttributeError)
@@ -125,6 +125,7 @@ class ShardedVectorEnv(VectorEnv):
         self.action_space = batch_space(self.single_action_space, num_envs)
         self._obs: list[Any] = [None] * num_envs
         self._started = False
+        self._ended = np.zeros(num_envs, bool)  # autoreset disabled: ended, awaiting a reset
 
     @property
     def workers(self) -> int:
@@ -173,6 +174,7 @@ class ShardedVectorEnv(VectorEnv):
         for (w, call), (obs, shard_infos) in zip(calls.items(), results, strict=True):
             self._unpack(w, obs, shard_infos, infos, call["options"].get("reset_mask"))
         self._started = True
+        self._ended[mask] = False
         if "config" in options:  # a new policy_frequency plays at its own speed
             self._send(0, "get_attr", "metadata")
             self.metadata["render_fps"] = self._gather([0])[0][0]["render_fps"]
@@ -186,6 +188,8 @@ class ShardedVectorEnv(VectorEnv):
         actions = list(iterate(self.action_space, actions))
         if len(actions) != self.num_envs:
             raise ValueError(f"step needs {self.num_envs} actions, got {len(actions)}")
+        if self._ended.any():  # every ended env named at once, as one process names them
+            raise ended_error(np.flatnonzero(self._ended).tolist())
         every = range(len(self.shards))
         for name in ("check_step", "step"):
             for w, shard in enumerate(self.shards):
@@ -199,6 +203,8 @@ class ShardedVectorEnv(VectorEnv):
             shard = self.shards[w]
             rewards[shard], terminations[shard], truncations[shard] = reward, terminated, truncated
             self._unpack(w, obs, shard_infos, infos)
+        if self.autoreset_mode is AutoresetMode.DISABLED:
+            self._ended = terminations | truncations
         return self._batch_obs(), rewards, terminations, truncations, infos
 
     def _batch_actions(self, actions: list) -> Any:

@@ -79,6 +79,14 @@ def check_batch_shape(action_space: spaces.Space, actions: Any) -> None:
         )
 
 
+def ended_error(ended: list[int]) -> RuntimeError:
+    """A step refused because envs ``ended`` have ended and autoreset is disabled."""
+    return RuntimeError(
+        f"envs {ended} ended: reset them with "
+        "reset(options={'reset_mask': mask}) before stepping (autoreset disabled)"
+    )
+
+
 class CounterSceneVectorEnv(VectorEnv):
     """N ``CounterScene-v0`` envs whose traffic is replanned in one batched world-model call.
 
@@ -295,11 +303,7 @@ class CounterSceneVectorEnv(VectorEnv):
             raise ValueError(f"step needs {self.num_envs} actions, got {len(actions)}")
         resetting = self._ended.copy()  # NEXT_STEP: their autoreset; SAME_STEP: none
         if self.autoreset_mode is AutoresetMode.DISABLED and resetting.any():
-            ended = (np.flatnonzero(resetting) + self.first_index).tolist()
-            raise RuntimeError(
-                f"envs {ended} ended: reset them with "
-                "reset(options={'reset_mask': mask}) before stepping (autoreset disabled)"
-            )
+            raise ended_error((np.flatnonzero(resetting) + self.first_index).tolist())
         return actions, resetting
 
     def step_envs(self, indices: Sequence[int], actions: Sequence[Any]) -> list[tuple]:
