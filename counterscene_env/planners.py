@@ -114,6 +114,22 @@ def sb3_sidecar(path: str | os.PathLike) -> Path:
     return path.with_name(path.name.removesuffix(".zip") + ".env.json")
 
 
+def read_sidecar(sidecar: Path) -> dict:
+    """The env config in an SB3 policy's sidecar (``{}`` without one).
+
+    Raises:
+        ValueError: not a JSON object (the message names the file)."""
+    if not sidecar.is_file():
+        return {}
+    try:
+        config = json.loads(sidecar.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{sidecar}: not valid JSON ({exc})") from None
+    if not isinstance(config, dict):
+        raise ValueError(f"{sidecar}: must hold a JSON object of env-config keys, got {config!r}")
+    return config
+
+
 class SB3Policy:
     """A Stable-Baselines3 policy from its ``.zip``, for prediction, loaded without unpickling.
 
@@ -162,8 +178,7 @@ class SB3Policy:
                 "without unpickling; retrain with plain policy_kwargs (net_arch lists, numbers)"
             )
         self.policy_kwargs = kwargs
-        sidecar = sb3_sidecar(self.path)
-        self.env_config = json.loads(sidecar.read_text()) if sidecar.is_file() else {}
+        self.env_config = read_sidecar(sb3_sidecar(self.path))
         self.policy = None
 
     def describe_spaces(self) -> tuple[str, str]:

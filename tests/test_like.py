@@ -111,6 +111,17 @@ def test_a_plain_ppo_from_intersection_v1_is_stress_tested_with_one_flag(
     err = capsys.readouterr().err
     assert "--like ENV_ID" in err  # the mismatch names the way out
     assert "has no .env.json sidecar" in err  # and the defaults were not taken silently
+    # The run's own settings are its flags: an env config that sets them is refused, not
+    # silently overwritten (run.json would record a duration the episodes never had).
+    assert main([*args, "--env-config", '{"duration": 1, "guidance": "none"}']) == 1
+    assert "--env-config sets ['duration', 'guidance']" in capsys.readouterr().err
+    sidecar = tmp_path / "x.env.json"
+    for text, words in (("{bad", "not valid JSON"), ("[1, 2]", "must hold a JSON object")):
+        sidecar.write_text(text)
+        assert main(args) == 1
+        err = capsys.readouterr().err
+        assert str(sidecar) in err and words in err
+    sidecar.unlink()
 
     like = [*args, "--like", "intersection-v1"]
     assert main([*like, "--json", "--out", str(tmp_path / "serial")]) == 0

@@ -158,6 +158,11 @@ def test_save_video_refuses_bad_input(tmp_path):
         save_video(mixed, tmp_path / "a.gif")
     with pytest.raises(ValueError, match="one size"):
         save_video([np.zeros((16, 16), np.uint8)], tmp_path / "a.gif")
+    for fps in (0, -5):  # a negative one left a corrupt gif behind
+        with pytest.raises(ValueError, match="fps"):
+            save_video(video_frames(), tmp_path / "sub" / "a.gif", fps=fps)
+    with pytest.raises(TypeError, match="fps"):
+        save_video(video_frames(), tmp_path / "a.mp4", fps="10")
     assert not list(tmp_path.iterdir()), "nothing is written on bad input"
 
 

@@ -337,6 +337,15 @@ def test_compare_cli_table_json_and_plots(template, tmp_path, capsys):
         assert (out / "plots" / f"compare_{key}.png").is_file()
     page = (out / "compare.html").read_text()
     assert "<script" not in page and "http" not in page
+    a_file = tmp_path / "a_file.txt"
+    a_file.write_text("keep me")
+    assert main(["compare", str(a), str(b), "--out", str(a_file)]) == 1
+    assert "is a file, not a directory" in capsys.readouterr().err
+    assert a_file.read_text() == "keep me"
+    with pytest.raises(TypeError, match="a list of run directories"):
+        compare_runs(str(a))
+    with pytest.raises(ValueError, match="videos must be >= 0"):
+        write_report(a, videos=-1)
 
 
 def test_compare_runs_without_shared_episodes_say_so(template, tmp_path):

@@ -949,3 +949,19 @@ def test_a_batch_trimmed_of_padding_samples_what_the_padded_batch_does(tiny):
         b = tiny.sample(trimmed, 3, [torch.Generator().manual_seed(0)], **kt)
         torch.testing.assert_close(b.normalized, a.normalized[:, :, :2], rtol=0, atol=1e-5)
         torch.testing.assert_close(b.trajectory, a.trajectory[:, :, :2], rtol=0, atol=1e-4)
+
+
+def test_sample_refuses_out_of_range_settings_by_name(tiny, scene_batch):
+    """``sample`` is public: a count of 0 or an eta of 5 is named, not a reshape error deep
+    in torch or a silently different sampler."""
+    for kwargs, kind, word in (
+        ({"num_samples": 0}, ValueError, "num_samples"),
+        ({"steps": 0}, ValueError, "steps"),
+        ({"eta": 5.0}, ValueError, "eta"),
+        ({"lane_steering": -1}, ValueError, "lane_steering"),
+        ({"map_guidance": -1.0}, ValueError, "map_guidance"),
+        ({"init_steps": -1}, ValueError, "init_steps"),
+        ({"num_samples": 1.5}, TypeError, "num_samples"),
+    ):
+        with pytest.raises(kind, match=word):
+            tiny.sample(scene_batch, **{"num_samples": 1, **kwargs})

@@ -26,6 +26,7 @@ from highway_env.envs.common.graphics import EnvViewer
 from highway_env.vehicle.graphics import VehicleGraphics
 from highway_env.vehicle.kinematics import Vehicle
 
+from counterscene_env.config import check_real
 from counterscene_env.sim.state import Episode
 
 EGO_COLOR = VehicleGraphics.EGO_COLOR
@@ -164,8 +165,10 @@ def save_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: int =
     Raises:
         ImportError: imageio (and, for mp4, imageio-ffmpeg) is not installed; install the
             extra with ``pip install "counterscene-env[video]"``.
-        ValueError: no frames, frames of different sizes, or another suffix.
+        ValueError: no frames, frames of different sizes, another suffix, an fps not > 0
+            (nothing is written).
     """
+    fps = check_real("fps", fps, gt=0)
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".mp4", ".gif"):
@@ -181,16 +184,17 @@ def save_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: int =
         raise ImportError(
             'save_video needs imageio: pip install "counterscene-env[video]"'
         ) from exc
-    stack = np.stack([np.asarray(f, dtype=np.uint8) for f in frames])
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if suffix == ".gif":
-        iio.imwrite(path, stack, duration=1000 / fps, loop=0)
-    else:
+    if suffix == ".mp4":
         try:
             import imageio_ffmpeg  # noqa: F401
         except ImportError as exc:
             raise ImportError(
                 'save_video writes mp4 with imageio-ffmpeg: pip install "counterscene-env[video]"'
             ) from exc
+    stack = np.stack([np.asarray(f, dtype=np.uint8) for f in frames])
+    path.parent.mkdir(parents=True, exist_ok=True)  # every check is done
+    if suffix == ".gif":
+        iio.imwrite(path, stack, duration=1000 / fps, loop=0)
+    else:
         iio.imwrite(path, stack, fps=fps, codec="libx264", macro_block_size=16)
     return path

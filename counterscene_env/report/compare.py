@@ -79,6 +79,8 @@ def compare_runs(directories: Sequence[str | os.PathLike]) -> Comparison:
         FileNotFoundError, ValueError: a directory is not a readable run
             (``report.rundir.load_run``; the message names the file and the field).
     """
+    if isinstance(directories, str | os.PathLike):
+        raise TypeError("directories must be a list of run directories, not one path")
     if len(directories) < 2:
         raise ValueError(f"compare needs at least two run directories, got {len(directories)}")
     resolved = [Path(d).resolve() for d in directories]
@@ -246,6 +248,8 @@ def write_comparison(c: Comparison, out: str | os.PathLike) -> Path:
     """``out/compare.md``, ``out/compare.html`` (self-contained), ``out/compare.json`` and
     ``out/plots/compare_<metric>.png``; returns the html's path."""
     root = Path(out)
+    if root.exists() and not root.is_dir():
+        raise ValueError(f"--out {root} is a file, not a directory")
     root.mkdir(parents=True, exist_ok=True)
     figures = [compare_plot(k, c.labels, ests, root) for k, ests in c.estimates.items()]
     blocks = document(c, figures)

@@ -8,6 +8,7 @@ import shlex
 from collections.abc import Sequence
 from pathlib import Path
 
+from counterscene_env.config import check_int
 from counterscene_env.report import html, markdown, ranking
 from counterscene_env.report.command import command_text, stress_argv
 from counterscene_env.report.plots import histograms, per_second_plots
@@ -50,13 +51,15 @@ def write_report(directory: str | os.PathLike, videos: int = 3, progress: bool =
     Raises:
         FileNotFoundError, ValueError: not a readable run directory (``report.rundir.load_run``;
             the message names the file and the field).
+        TypeError, ValueError: ``videos`` not an int >= 0.
     """
+    videos = check_int("videos", videos, ge=0)
     run = load_run(directory)
     root = run.directory
     (root / "command.txt").write_text(command_text(run))
     figs = per_second_plots(per_second_table(run.records), root)
     hist_figs, notes = histograms(run.records, root)
-    worst = ranking.worst_episodes(run.records, max(0, videos))
+    worst = ranking.worst_episodes(run.records, videos)
     made, video_note = _videos(run, worst, progress) if worst else ({}, _NO_VIDEOS)
     blocks = document(
         run, shlex.join(stress_argv(run)), [*figs, *hist_figs], notes, made, video_note

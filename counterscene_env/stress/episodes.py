@@ -20,7 +20,7 @@ from counterscene_env.config import Scenario
 from counterscene_env.planners import Planner, make_planner
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import is_generated, scenes_for
-from counterscene_env.sim import ClosedLoop
+from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.stress.batch import record, run_batch
 from counterscene_env.stress.config import StressConfig
 from counterscene_env.stress.log import EpisodeLog
@@ -149,6 +149,19 @@ class BatchRunner:
         pass
 
 
+#: Env-config keys a stress run sets itself (its scenes, model, closed-loop settings and
+#: episode ends), which a policy's sidecar or ``--env-config`` may not set.
+RUN_KEYS = frozenset(
+    {
+        "scenario",
+        "model",
+        *(f.name for f in dataclasses.fields(SimConfig)),
+        "terminate_on_collision",
+        "terminate_on_off_road",
+    }
+)
+
+
 class PolicyRunner:
     """Runs batches of episodes of an ``sb3:PATH.zip`` planner through ``CounterScene-v0``
     (see :func:`run_policy_episodes`); ``runner(first, scenes)`` as :class:`BatchRunner`. A
@@ -178,6 +191,18 @@ class PolicyRunner:
 
         self.config = config
         self.policy = SB3Policy(config.policy_path if policy is None else policy)
+        for given, where in (
+            (self.policy.env_config, f"{self.policy.path.name}'s .env.json sidecar"),
+            (env_config or {}, "--env-config"),
+        ):
+            run_keys = sorted(set(given) & RUN_KEYS, key=str)
+            if run_keys:  # the run's own settings would overwrite them: refuse, never drop
+                raise ValueError(
+                    f"{where} sets {run_keys}, which the stress run sets itself: pass them as "
+                    "its flags (--scenario, --model, --duration, --guidance, ...); the policy's "
+                    "env config holds what it sees, does and when (observation, action, "
+                    "policy_frequency, rewards)"
+                )
         settings = {
             **self.policy.env_config,
             **(env_config or {}),

@@ -23,6 +23,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from counterscene_env.config import check_int, check_real
 from counterscene_env.dynamics import (
     actions_from_states,
     course_angles,
@@ -37,6 +38,28 @@ from counterscene_env.world_model.lane_steering import steer_onto_lanes
 from counterscene_env.world_model.records import GuidanceHook, Normalization, Prediction
 from counterscene_env.world_model.scheduler import CosineScheduler
 from counterscene_env.world_model.window import WindowConfig
+
+
+def check_sampling(
+    num_samples: int,
+    steps: int | None,
+    eta: float | None,
+    map_guidance: float | None,
+    lane_steering: int | None,
+    init_steps: int,
+) -> None:
+    """Raise unless :meth:`WorldModel.sample`'s numbers are in range (None: the config's),
+    naming the argument, as the closed loop's settings are checked (``SimConfig``)."""
+    check_int("num_samples", num_samples, ge=1)
+    check_int("init_steps", init_steps, ge=0)
+    if steps is not None:
+        check_int("steps", steps, ge=1)
+    if lane_steering is not None:
+        check_int("lane_steering", lane_steering, ge=0)
+    if eta is not None:
+        check_real("eta", eta, ge=0, le=1)
+    if map_guidance is not None:
+        check_real("map_guidance", map_guidance, ge=0)
 
 
 class WorldModel(nn.Module):
@@ -279,6 +302,7 @@ class WorldModel(nn.Module):
         sampler = sampler or c.sampler
         if sampler not in ("ddim", "ddpm"):
             raise ValueError(f"sampler must be 'ddim' or 'ddpm', got {sampler!r}")
+        check_sampling(num_samples, steps, eta, map_guidance, lane_steering, init_steps)
         if sampler == "ddpm":
             steps, eta = c.num_train_timesteps, 1.0
         steps = steps or c.sampling_steps
