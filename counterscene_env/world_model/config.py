@@ -20,6 +20,8 @@ from counterscene_env.config import (
     PredictionTarget,
     Sampler,
     check_fields,
+    check_int,
+    check_real,
     choice_field,
 )
 from counterscene_env.world_model.parked import KERB_OFFSET
@@ -264,3 +266,25 @@ def preset(name: str) -> ModelConfig:
         return PRESETS[name]
     except KeyError:
         raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}") from None
+
+
+def check_sampling(
+    num_samples: int,
+    steps: int | None,
+    eta: float | None,
+    map_guidance: float | None,
+    lane_steering: int | None,
+    init_steps: int,
+) -> None:
+    """Raise unless ``WorldModel.sample``'s numbers are in range (None: the config's),
+    naming the argument, as the closed loop's settings are checked (``SimConfig``)."""
+    check_int("num_samples", num_samples, ge=1)
+    check_int("init_steps", init_steps, ge=0)
+    if steps is not None:
+        check_int("steps", steps, ge=1)
+    if lane_steering is not None:
+        check_int("lane_steering", lane_steering, ge=0)
+    if eta is not None:
+        check_real("eta", eta, ge=0, le=1)
+    if map_guidance is not None:
+        check_real("map_guidance", map_guidance, ge=0)

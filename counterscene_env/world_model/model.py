@@ -23,7 +23,6 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from counterscene_env.config import check_int, check_real
 from counterscene_env.dynamics import (
     actions_from_states,
     course_angles,
@@ -32,34 +31,12 @@ from counterscene_env.dynamics import (
 from counterscene_env.world_model import features, hold
 from counterscene_env.world_model.attention import Context
 from counterscene_env.world_model.cig import edge_features
-from counterscene_env.world_model.config import ModelConfig
+from counterscene_env.world_model.config import ModelConfig, check_sampling
 from counterscene_env.world_model.denoiser import Denoiser
 from counterscene_env.world_model.lane_steering import steer_onto_lanes
 from counterscene_env.world_model.records import GuidanceHook, Normalization, Prediction
 from counterscene_env.world_model.scheduler import CosineScheduler
 from counterscene_env.world_model.window import WindowConfig
-
-
-def check_sampling(
-    num_samples: int,
-    steps: int | None,
-    eta: float | None,
-    map_guidance: float | None,
-    lane_steering: int | None,
-    init_steps: int,
-) -> None:
-    """Raise unless :meth:`WorldModel.sample`'s numbers are in range (None: the config's),
-    naming the argument, as the closed loop's settings are checked (``SimConfig``)."""
-    check_int("num_samples", num_samples, ge=1)
-    check_int("init_steps", init_steps, ge=0)
-    if steps is not None:
-        check_int("steps", steps, ge=1)
-    if lane_steering is not None:
-        check_int("lane_steering", lane_steering, ge=0)
-    if eta is not None:
-        check_real("eta", eta, ge=0, le=1)
-    if map_guidance is not None:
-        check_real("map_guidance", map_guidance, ge=0)
 
 
 class WorldModel(nn.Module):
