@@ -214,6 +214,10 @@ def check_int(key: str, value: Any, ge: int | None = None, le: int | None = None
     return int(value)
 
 
+#: The scenes' step [s]: every source is resampled onto it (``scene/core.py``), and the
+#: closed loop and the env run at it.
+DEFAULT_DT = 0.1
+
 #: The largest seed of a closed-loop episode: its torch generator takes at most 64 bits
 #: (``torch.Generator.manual_seed``); a larger int would fail inside ``reset``.
 MAX_SEED = 2**64 - 1

@@ -120,3 +120,15 @@ def test_ctrl_c_stops_a_resumable_command_in_one_line(monkeypatch, capsys):
         "counterscene generate: stopped. The finished shards are kept: rerun the same command "
         "to go on"
     )
+
+
+def test_the_command_line_loads_no_heavy_module_before_a_command_runs():
+    """``counterscene --help`` stays instant: torch, shapely and the scene and report modules
+    load when a command needs them, not when the parser is built."""
+    code = (
+        "import sys, counterscene_env.cli as c; c._parser(); "
+        "print(sorted(m for m in ('torch', 'shapely', 'counterscene_env.scene.core', "
+        "'counterscene_env.report.document') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

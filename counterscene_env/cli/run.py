@@ -18,8 +18,6 @@ from counterscene_env.cli.common import (
     json_safe,
     load_model,
 )
-from counterscene_env.cli.stress_text import print_stress
-from counterscene_env.planners import sb3_sidecar
 
 
 def add_stress(sub) -> None:
@@ -235,6 +233,8 @@ def _cmd_stress(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(json_safe({**summary, "timings": times})))
         return 0
+    from counterscene_env.cli.stress_text import print_stress
+
     print_stress(config, summary, times, args.scenario, args.workers)
     return 0
 
@@ -273,6 +273,8 @@ def _policy_env_config(args: argparse.Namespace, sb3: bool) -> dict | None:
             print(f"counterscene stress: warning: --like: {w.message}", file=sys.stderr)
     if args.env_config:
         out.update(_read_env_config(args.env_config))
+    from counterscene_env.planners import sb3_sidecar  # torch: not at --help time
+
     if not out and not sb3_sidecar(args.planner.removeprefix("sb3:")).is_file():
         print(
             f"counterscene stress: note: {args.planner} has no .env.json sidecar and no --like "

@@ -18,13 +18,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from counterscene_env.config import DEFAULT_DT
 from counterscene_env.scene.road import RoadMap
 
 #: Agent type labels. Vehicles are the agents the world model drives; the other types are kept
 #: so that collision checks see pedestrians, cyclists and static objects too.
 AGENT_TYPES = ("vehicle", "pedestrian", "cyclist", "other")
 
-DEFAULT_DT = 0.1  # [s]
 #: No road user moves faster than this between two valid steps [m/s] (360 km/h): a faster
 #: "move" is a corrupt position (``Scene`` refuses it; importers repair the track).
 MAX_SPEED = 100.0

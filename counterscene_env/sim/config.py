@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from counterscene_env.config import (
+    DEFAULT_DT,
     GuidancePreset,
     GuidanceProgress,
     Sampler,
@@ -21,7 +22,6 @@ from counterscene_env.config import (
     choice_field,
     from_mapping,
 )
-from counterscene_env.scene.core import DEFAULT_DT
 
 
 @dataclass(frozen=True)
