@@ -87,7 +87,7 @@ def track_alone(scenes, jobs, taus) -> dict[str, np.ndarray]:
             out["next"].append((v[now + 4] - v[now]) / (4 * dt))
             heading = np.array([np.cos(sc.yaws[i, now]), np.sin(sc.yaws[i, now])])
             truth = p[now + 1 : now + HORIZON + 1]
-            for tau in out.keys() - {"recent", "next", "positions"}:
+            for tau in (0.0, *taus):
                 gain = tau * (1 - np.exp(-t / tau)) if tau else 0.0 * t
                 travelled = np.cumsum(np.maximum(v[now] + recent * gain, 0.0)) * dt
                 drive = p[now] + travelled[:, None] * heading

@@ -11,8 +11,6 @@ from typing import Any
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
-from counterscene_env.config import check_int
-
 
 def _info_array(value: Any, n: int) -> np.ndarray:
     """An empty info array for ``n`` envs of ``value``'s kind (as Gymnasium makes them)."""
@@ -141,12 +139,6 @@ def unbatch_info(infos: dict, i: int) -> dict:
             item = value[i]
             out[key] = item.item() if isinstance(item, np.generic) else item
     return out
-
-
-def check_count(value: Any, name: str, minimum: int) -> int:
-    """``value`` if it is an int of at least ``minimum`` (``num_envs``, ``workers``), else a
-    ``TypeError`` (not an int) or ``ValueError`` (too small) naming it."""
-    return check_int(name, value, ge=minimum)
 
 
 def check_vector_modes(

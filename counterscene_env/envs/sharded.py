@@ -29,10 +29,10 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array, iterate
 
+from counterscene_env.config import check_int
 from counterscene_env.envs.batching import (
     add_info,
     attr_values,
-    check_count,
     check_vector_modes,
     env_indices,
     expand_seeds,
@@ -53,7 +53,7 @@ def vector_env(num_envs: int = 1, workers: int = 1, **kwargs: Any) -> VectorEnv:
     :class:`CounterSceneVectorEnv` for ``workers=1`` (the default), else a
     :class:`ShardedVectorEnv`. ``kwargs``: the vector env's (``config``, ``render_mode``,
     ``scenario``, ``autoreset_mode``)."""
-    if check_count(workers, "workers", 1) == 1:
+    if check_int("workers", workers, ge=1) == 1:
         return CounterSceneVectorEnv(num_envs, **kwargs)
     return ShardedVectorEnv(num_envs, workers, **kwargs)
 
@@ -79,8 +79,8 @@ class ShardedVectorEnv(VectorEnv):
         scenario: str | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ) -> None:
-        check_count(num_envs, "num_envs", 1)
-        check_count(workers, "workers", 2)
+        check_int("num_envs", num_envs, ge=1)
+        check_int("workers", workers, ge=2)
         # Refused here, before any process starts (each worker's env checks them again).
         check_vector_modes(render_mode, autoreset_mode, self.metadata["render_modes"])
         if workers > num_envs:

@@ -50,7 +50,7 @@ def check_types(config: Mapping[str, Any], egos: int, env: Any = None) -> None:
     Raises:
         TypeError, ValueError: naming the key (``observation.grid_step``, ...).
     """
-    obs = check_type_dict("observation", config["observation"], OBSERVATION_TYPES)
+    obs = check_observation_type("observation", config["observation"])
     act = check_type_dict("action", config["action"], ACTION_TYPES)
     multi = (obs["type"] == "MultiAgentObservation", act["type"] == "MultiAgentAction")
     if egos > 1 and not all(multi):
@@ -63,7 +63,7 @@ def check_types(config: Mapping[str, Any], egos: int, env: Any = None) -> None:
     obs_name = "observation"
     if multi[0]:
         obs_name = "observation.observation_config"
-        obs = check_type_dict(obs_name, obs.get("observation_config"), OBSERVATION_TYPES)
+        obs = check_observation_type(obs_name, obs.get("observation_config"))
     if multi[1]:
         act = check_type_dict("action.action_config", act.get("action_config"), ACTION_TYPES)
     check_observation(obs, obs_name)
@@ -100,15 +100,22 @@ def check_type_dict(key: str, value: Any, types: tuple[str, ...]) -> Mapping[str
             f"{key} must be a dict with a 'type' (one of {list(types)}), {describe_value(value)}"
         )
     kind = value.get("type")
-    if types is OBSERVATION_TYPES and kind in FOREIGN_OBSERVATIONS:
-        raise ValueError(
-            f"{key}: highway-env's {kind} observation is built from "
-            f"{FOREIGN_OBSERVATIONS[kind]}, which CounterScene's scenes do not have; "
-            f"use one of {list(types)}"
-        )
     if kind not in types:
         raise ValueError(f"{key} needs a 'type', one of {list(types)}; got {kind!r} in {value!r}")
     return value
+
+
+def check_observation_type(key: str, value: Any) -> Mapping[str, Any]:
+    """An observation config (:func:`check_type_dict`); highway-env's types that no scene
+    here can fill are named with the reason."""
+    kind = value.get("type") if isinstance(value, Mapping) else None
+    if kind in FOREIGN_OBSERVATIONS:
+        raise ValueError(
+            f"{key}: highway-env's {kind} observation is built from "
+            f"{FOREIGN_OBSERVATIONS[kind]}, which CounterScene's scenes do not have; "
+            f"use one of {list(OBSERVATION_TYPES)}"
+        )
+    return check_type_dict(key, value, OBSERVATION_TYPES)
 
 
 def check_observation(obs: Mapping[str, Any], name: str = "observation") -> None:
@@ -123,7 +130,7 @@ def check_observation(obs: Mapping[str, Any], name: str = "observation") -> None
             )
         for i, part in enumerate(parts):
             key = f"{name}.observation_configs[{i}]"
-            check_observation(check_type_dict(key, part, OBSERVATION_TYPES), key)
+            check_observation(check_observation_type(key, part), key)
         return
     _check_scalars(obs, name)
     if obs["type"] == "Kinematics" and "features" in obs:

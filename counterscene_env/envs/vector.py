@@ -39,10 +39,10 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array, iterate
 
+from counterscene_env.config import check_int
 from counterscene_env.envs.batching import (
     add_info,
     attr_values,
-    check_count,
     check_vector_modes,
     env_indices,
     expand_seeds,
@@ -113,7 +113,7 @@ class CounterSceneVectorEnv(VectorEnv):
         scenario: str | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ) -> None:
-        check_count(num_envs, "num_envs", 1)
+        check_int("num_envs", num_envs, ge=1)
         mode = check_vector_modes(render_mode, autoreset_mode, self.metadata["render_modes"])
         self.envs = [
             CounterSceneEnv(config=config, render_mode=render_mode, scenario=scenario)

@@ -20,7 +20,7 @@ from counterscene_env.config import Scenario
 from counterscene_env.planners import Planner, make_planner
 from counterscene_env.scene.core import Scene
 from counterscene_env.scene.sources import is_generated, scenes_for
-from counterscene_env.sim import ClosedLoop, SimConfig
+from counterscene_env.sim import ClosedLoop
 from counterscene_env.stress.batch import record, run_batch
 from counterscene_env.stress.config import StressConfig
 from counterscene_env.stress.log import EpisodeLog
@@ -149,17 +149,9 @@ class BatchRunner:
         pass
 
 
-#: Env-config keys a stress run sets itself (its scenes, model, closed-loop settings and
-#: episode ends), which a policy's sidecar or ``--env-config`` may not set.
-RUN_KEYS = frozenset(
-    {
-        "scenario",
-        "model",
-        *(f.name for f in dataclasses.fields(SimConfig)),
-        "terminate_on_collision",
-        "terminate_on_off_road",
-    }
-)
+#: Env-config keys a stress run sets itself besides the closed-loop settings (``SIM_KEYS``):
+#: its scenes, model and episode ends. A policy's sidecar or ``--env-config`` may set none.
+RUN_KEYS = ("scenario", "model", "terminate_on_collision", "terminate_on_off_road")
 
 
 class PolicyRunner:
@@ -186,6 +178,7 @@ class PolicyRunner:
         env_config: dict | None = None,
         policy: str | os.PathLike | None = None,
     ) -> None:
+        from counterscene_env.envs.config import SIM_KEYS
         from counterscene_env.envs.single_agent import CounterSceneEnv
         from counterscene_env.planners import SB3Policy
 
@@ -195,7 +188,7 @@ class PolicyRunner:
             (self.policy.env_config, f"{self.policy.path.name}'s .env.json sidecar"),
             (env_config or {}, "--env-config"),
         ):
-            run_keys = sorted(set(given) & RUN_KEYS, key=str)
+            run_keys = sorted(set(given) & {*RUN_KEYS, *SIM_KEYS}, key=str)
             if run_keys:  # the run's own settings would overwrite them: refuse, never drop
                 raise ValueError(
                     f"{where} sets {run_keys}, which the stress run sets itself: pass them as "
