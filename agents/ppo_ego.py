@@ -168,17 +168,25 @@ def _default_observation() -> dict:
     return CounterSceneEnv.default_config()["observation"]
 
 
+def eval_config(args: Args, planner: str, guidance: str):
+    """The ``StressConfig`` of one evaluation row."""
+    from counterscene_env.sim import SimConfig
+    from counterscene_env.stress import StressConfig
+
+    samples = {"num_samples": args.num_samples} if args.num_samples else {}
+    return StressConfig(
+        scenario=args.eval_scenario or args.scenario,
+        episodes=args.eval_episodes,
+        seed=args.eval_seed,
+        planner=planner,
+        sim=SimConfig(duration=args.duration, guidance=guidance, **samples),
+    )
+
+
 def evaluate(args: Args, path: Path, out: Path) -> dict:
     """Stress rows: the PPO policy and IDM, each with guidance none and full."""
     from counterscene_env.metrics import json_safe
-    from counterscene_env.sim import SimConfig
-    from counterscene_env.stress import (
-        StressConfig,
-        run_episodes,
-        run_policy_episodes,
-        summarize,
-        timings,
-    )
+    from counterscene_env.stress import run_episodes, run_policy_episodes, summarize, timings
     from counterscene_env.world_model import load_model
 
     keys = ("cr", "cr_ego_adversary", "hbr_ego", "orr", "mean_min_ttc",
@@ -186,15 +194,7 @@ def evaluate(args: Args, path: Path, out: Path) -> dict:
     rows = {}
     for planner in (f"sb3:{path}", "idm"):
         for guidance in ("none", "full"):
-            samples = {"num_samples": args.num_samples} if args.num_samples else {}
-            sim = SimConfig(duration=args.duration, guidance=guidance, **samples)
-            config = StressConfig(
-                scenario=args.eval_scenario or args.scenario,
-                episodes=args.eval_episodes,
-                seed=args.eval_seed,
-                planner=planner,
-                sim=sim,
-            )
+            config = eval_config(args, planner, guidance)
             if planner == "idm":
                 records = run_episodes(load_model(), config, progress=False)
             else:
@@ -210,6 +210,12 @@ def evaluate(args: Args, path: Path, out: Path) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
+    # The evaluation's settings are checked before training, not after it has run.
+    try:
+        for guidance in ("none", "full"):
+            eval_config(args, "idm", guidance)
+    except ValueError as exc:
+        raise SystemExit(f"ppo_ego.py: the evaluation (--eval-*, --duration): {exc}") from None
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     path = train(args, out)

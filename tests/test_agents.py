@@ -154,6 +154,16 @@ def test_ppo_ego_recipe_trains_saves_and_evaluates(tmp_path):
     assert all(0.0 <= row["cr"] <= 1.0 for row in rows.values())
 
 
+def test_ppo_ego_recipe_checks_its_evaluation_before_training(tmp_path):
+    """A bad evaluation setting is refused at once, not after minutes of training."""
+    done = run(
+        "agents/ppo_ego.py", "--eval-episodes", "0", "--out", str(tmp_path / "out"),
+    )  # fmt: skip
+    assert done.returncode != 0 and "Traceback" not in done.stderr
+    assert "--eval-" in done.stderr and "episodes must be >= 1" in done.stderr
+    assert not (tmp_path / "out").exists()
+
+
 def test_sb3_policy_loads_without_unpickling(tmp_path, monkeypatch):
     """Loading never calls pickle/cloudpickle (an SB3 zip can carry arbitrary pickles)."""
     import gymnasium as gym

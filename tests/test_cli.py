@@ -91,6 +91,7 @@ def test_errors_are_one_clear_line(tmp_path):
         (["inspect", "X", "--smooth", "nan"], ["--smooth", "nan"]),
         (["evaluate-model", "--data", "X", "--seed", "5"], ["--seed", "--scenario"]),
         (["bench", "--preset", "default", "--model", "X"], ["--preset", "--model"]),
+        (["bench", "--model-only", "--episodes", "2"], ["--episodes", "--model-only"]),
     ],
 )
 def test_bad_flags_are_refused_in_one_line_before_any_work(tmp_path, args, words):

@@ -8,15 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from counterscene_env.config import (
-    GuidancePreset,
-    Sampler,
-    Selector,
-    add_arguments,
-    defaults,
-    field_docs,
-    parsed_fields,
-)
+from counterscene_env.cli.flags import add_arguments, field_docs, parsed_fields
+from counterscene_env.config import GuidancePreset, Sampler, Selector, defaults
 from counterscene_env.sim import SimConfig
 from counterscene_env.world_model.config import ModelConfig
 from counterscene_env.world_model.window import WindowConfig

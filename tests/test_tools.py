@@ -45,10 +45,12 @@ def test_ngsim_split_holds_out_whole_map_sections_and_copies_nothing(tmp_path, m
     assert {p.name for p in (out / "heldout").iterdir()} == heldout
 
 
-def test_ngsim_split_refuses_a_name_it_cannot_place(tmp_path, monkeypatch):
+def test_ngsim_split_refuses_a_name_it_cannot_place_and_writes_nothing(tmp_path, monkeypatch):
+    (tmp_path / "USA_US101-5_1_T-1.xml").write_text("<commonRoad/>")  # sorted first, placeable
     (tmp_path / "scenario.xml").write_text("<commonRoad/>")
-    with pytest.raises(ValueError, match=r"scenario\.xml"):
+    with pytest.raises(SystemExit, match=r"scenario\.xml"):
         _run_tool("ngsim_split", [str(tmp_path), str(tmp_path / "out")], monkeypatch)
+    assert not (tmp_path / "out").exists()
 
 
 def _selection_row(folder: Path, hits: list[int], tiers: list[int | None]) -> None:

@@ -916,20 +916,20 @@ def test_source_flag_starts_silent_then_tells_recordings_from_generated_traffic(
 
 
 def test_weighted_batches_fill_each_source_to_its_share():
-    """``_weighted_batches``: source shares follow the weights whatever the window counts,
+    """``weighted_batches``: source shares follow the weights whatever the window counts,
     and step k's draw is the same whether the run starts at 0 or resumes at k."""
-    from counterscene_env.world_model.train import _weighted_batches
+    from counterscene_env.world_model.batches import weighted_batches
 
     sources = torch.tensor([0] * 900 + [1] * 100)
-    draws = _weighted_batches(sources, (1.0, 3.0), 64, seed=0, start_step=0)
+    draws = weighted_batches(sources, (1.0, 3.0), 64, seed=0, start_step=0)
     rows = torch.cat([next(draws) for _ in range(100)])
     share = float((sources[rows] == 1).float().mean())
     assert abs(share - 0.75) < 0.03  # 6400 draws: the standard error is 0.005
-    again = _weighted_batches(sources, (1.0, 3.0), 64, seed=0, start_step=99)
+    again = weighted_batches(sources, (1.0, 3.0), 64, seed=0, start_step=99)
     assert torch.equal(next(again), rows[-64:])
     # Weight only on a source without windows: refused at once, not at the first step.
     with pytest.raises(ValueError, match="positive weight has no windows"):
-        _weighted_batches(torch.zeros(5, dtype=torch.long), (0.0, 1.0), 4, seed=0, start_step=0)
+        weighted_batches(torch.zeros(5, dtype=torch.long), (0.0, 1.0), 4, seed=0, start_step=0)
 
 
 def test_a_batch_trimmed_of_padding_samples_what_the_padded_batch_does(tiny):

@@ -82,7 +82,7 @@ def test_train_writes_checkpoint_log_and_state(trained):
 
 
 @pytest.mark.slow
-def test_resume_extends_the_run_and_matches_an_uninterrupted_one(dataset, tmp_path):
+def test_resume_extends_the_run_and_matches_an_uninterrupted_one(dataset, tmp_path, capsys):
     resumed = tmp_path / "resumed"
     assert _train(dataset, resumed, 4) == 0
     before = _log(resumed)
@@ -106,9 +106,11 @@ def test_resume_extends_the_run_and_matches_an_uninterrupted_one(dataset, tmp_pa
         x.pop("wall_time_s"), y.pop("wall_time_s")
         assert x == y
 
-    # A finished run rerun with the same --steps does nothing more.
+    # A finished run rerun with the same --steps does nothing more, and prints its last record.
+    capsys.readouterr()
     assert _train(dataset, fresh, 6) == 0
     assert len(_log(fresh)) == 3
+    assert json.loads(capsys.readouterr().out) == json.loads(_log(fresh)[-1])
 
 
 def test_parked_cars_change_the_run_and_resume_exactly(dataset, tmp_path, capsys):

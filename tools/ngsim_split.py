@@ -50,9 +50,13 @@ def main() -> None:
     files = sorted(Path(args.source).rglob("*.xml"))
     if not files:
         raise SystemExit(f"{args.source}: no .xml files")
+    # Every name is read before anything is written: a foreign file refuses the whole split.
+    try:
+        sides = ["heldout" if map_section(f.name) in HELDOUT else "train" for f in files]
+    except ValueError as exc:
+        raise SystemExit(f"{args.source}: {exc}") from None
     counts = {"train": 0, "heldout": 0}
-    for f in files:
-        side = "heldout" if map_section(f.name) in HELDOUT else "train"
+    for f, side in zip(files, sides, strict=True):
         dest = Path(args.out) / side / f.name
         dest.parent.mkdir(parents=True, exist_ok=True)
         if not dest.exists():

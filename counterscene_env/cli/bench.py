@@ -41,31 +41,40 @@ def add_bench(sub) -> None:
     be.add_argument(
         "--threads", type=int_at_least(1), help="torch threads (default: torch's choice)"
     )
-    be.add_argument(
-        "--steps", type=int_at_least(1), default=300, help="env steps of each env (default 300)"
-    )
-    be.add_argument(
-        "--episodes", type=int_at_least(1), default=4, help="stress episodes (default 4)"
-    )
+    # The whole-run flags default to None so that --model-only can refuse them when given
+    # (they would be ignored); _full_bench fills in FULL_BENCH_DEFAULTS.
+    be.add_argument("--steps", type=int_at_least(1), help="env steps of each env (default 300)")
+    be.add_argument("--episodes", type=int_at_least(1), help="stress episodes (default 4)")
     be.add_argument(
         "--vector-envs",
-        default="4,16,64",
         help="sizes of the batched vector env to time, comma-separated (default 4,16,64; "
         "'' to skip)",
     )
     be.add_argument(
-        "--vector-steps",
-        type=int_at_least(1),
-        default=50,
-        help="vector steps of each size (default 50)",
+        "--vector-steps", type=int_at_least(1), help="vector steps of each size (default 50)"
     )
     add_json_flag(be)
     be.set_defaults(func=_cmd_bench)
 
 
+FULL_BENCH_DEFAULTS = {"steps": 300, "episodes": 4, "vector_envs": "4,16,64", "vector_steps": 50}
+"""The defaults of the flags that only the whole run reads."""
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     if not (args.model_only or args.preset):
+        for key, value in FULL_BENCH_DEFAULTS.items():
+            if getattr(args, key) is None:
+                setattr(args, key, value)
         return _full_bench(args)
+    given = [
+        f"--{k.replace('_', '-')}" for k in FULL_BENCH_DEFAULTS if getattr(args, k) is not None
+    ]
+    if given:
+        raise ValueError(
+            f"{', '.join(given)}: only the whole run reads this; --model-only and --preset time "
+            "the sampling call alone (its flags: --runs, --samples, --threads)"
+        )
     from counterscene_env.world_model.bench import bench_model
 
     if args.preset:

@@ -159,7 +159,7 @@ _SIM_SWITCHES = {
 def _add_sim_flags(parser: argparse.ArgumentParser) -> None:
     """One flag per ``SimConfig`` field (``--field-name``, help from its docstring), plus the
     documented short spellings; :func:`_sim_config` turns them into a ``SimConfig``."""
-    from counterscene_env.config import add_arguments
+    from counterscene_env.cli.flags import add_arguments
     from counterscene_env.sim.config import SimConfig
 
     group = parser.add_argument_group("closed-loop settings (SimConfig; unset: its default)")
@@ -168,7 +168,7 @@ def _add_sim_flags(parser: argparse.ArgumentParser) -> None:
 
 def _sim_config(args: argparse.Namespace):
     """The ``SimConfig`` of the given closed-loop flags (the rest at their defaults)."""
-    from counterscene_env.config import parsed_fields
+    from counterscene_env.cli.flags import parsed_fields
     from counterscene_env.sim.config import SimConfig
 
     return SimConfig(**parsed_fields(args, SimConfig))

@@ -27,11 +27,19 @@ def print_stress(config, summary: dict, times: dict, scenario: str, workers: int
             f"{name:8s}"
             + "".join(f"{fmt(row[k]):>10s}" for k in ("ADE", "FDE", "ORR", "HBR", "CR"))
         )
+    # An episode whose agents never close on each other has no TTC: the mean is over the rest.
+    without = summary["episodes_without_ttc_conflict"]
+    if without == summary["episodes"]:
+        ttc = "no TTC conflict in any episode"
+    else:
+        ttc = f"mean min TTC {fmt(summary['mean_min_ttc'])} s" + (
+            f" ({count(without, 'episode')} without a TTC conflict)" if without else ""
+        )
     print(
         f"episode CR {fmt(summary['cr'])}, ego-adversary CR {fmt(summary['cr_ego_adversary'])}, "
         f"non-ego CR {fmt(summary['cr_non_ego'])} (not in the log "
         f"{fmt(summary['cr_non_ego_new'])}), "
-        f"mean min TTC {fmt(summary['mean_min_ttc'])} s, min clearance to adversary "
+        f"{ttc}, min clearance to adversary "
         f"{fmt(summary['mean_min_clearance_adversary'])} m, fallbacks {summary['fallbacks']}"
     )
     # A real map lacks the car parks and driveways where logged cars stand: the log's own

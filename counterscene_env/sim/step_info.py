@@ -51,7 +51,8 @@ def ego_step_info(ep: Episode, k: int, replanned: bool) -> dict:
     adv_dist = float(np.linalg.norm(pos[adv] - pos[e])) if adv is not None and ok[adv] else None
     return {
         "step": t - ep.start,
-        "time": (t - ep.start) * log.dt,
+        # Rounded: 3 * 0.1 s is 0.30000000000000004 s in floats; a user compares it with 0.3.
+        "time": round((t - ep.start) * log.dt, 9),
         "collision": bool(hits.any()),
         "collided_with": str(log.agent_ids[hit_rows[0]]) if hit_rows.size else None,
         "hard_braking": bool(acc < HARD_BRAKE_THRESHOLD),

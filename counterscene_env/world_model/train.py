@@ -20,7 +20,7 @@ import json
 import os
 import platform
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +28,7 @@ import torch
 from torch.utils.data import default_collate
 
 from counterscene_env.scene.smoothing import smooth_tracks
+from counterscene_env.world_model.batches import batches, weighted_batches
 from counterscene_env.world_model.checkpoint import save_model
 from counterscene_env.world_model.config import preset as get_preset
 from counterscene_env.world_model.dataset import SceneWindowDataset, load_sources
@@ -72,40 +73,6 @@ def action_statistics(model: WorldModel, batch: dict[str, torch.Tensor]) -> Norm
     a = actions[ok]
     mean, std = a.mean(0), a.std(0).clamp(min=1e-3)
     return Normalization(tuple(mean.tolist()), tuple(std.tolist()))
-
-
-def _weighted_batches(
-    sources: torch.Tensor, weights: Sequence[float], batch_size: int, seed: int, start_step: int
-) -> Iterator[torch.Tensor]:
-    """Row indices of each step, drawn with replacement so that source ``j`` (``sources [N]``
-    int) fills ``weights[j] / sum(weights)`` of a batch on average; step ``k``'s draw is seeded
-    by ``(seed, k)``, so a resumed run sees the same batches."""
-    counts = torch.bincount(sources, minlength=len(weights)).double()
-    w = torch.tensor(weights, dtype=torch.float64)
-    p = (w / counts.clamp(min=1))[sources]  # per window; an empty source gets nothing
-    if not p.sum() > 0:
-        raise ValueError("data_weights: every dataset with a positive weight has no windows")
-
-    def draws() -> Iterator[torch.Tensor]:
-        step = start_step
-        while True:
-            g = torch.Generator().manual_seed(seed * 100003 + step)
-            yield torch.multinomial(p, batch_size, replacement=True, generator=g)
-            step += 1
-
-    return draws()
-
-
-def _batches(n: int, batch_size: int, seed: int, start_step: int) -> Iterator[torch.Tensor]:
-    """Row indices of each step: epoch ``e`` is a permutation seeded by ``(seed, e)``, so a
-    resumed run sees the same batches as an uninterrupted one."""
-    per_epoch = max(1, n // batch_size)
-    step = start_step
-    while True:
-        epoch, i = divmod(step, per_epoch)
-        perm = torch.randperm(n, generator=torch.Generator().manual_seed(seed * 100003 + epoch))
-        yield perm[i * batch_size : (i + 1) * batch_size]
-        step += 1
 
 
 @torch.no_grad()
@@ -330,10 +297,10 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         from tqdm import tqdm
 
         bar = tqdm(total=cfg.steps, initial=step, desc="train", unit="step", dynamic_ncols=True)
-    batches = (
-        _batches(n_train, cfg.batch_size, cfg.seed, step)
+    draws = (
+        batches(n_train, cfg.batch_size, cfg.seed, step)
         if cfg.data_weights is None
-        else _weighted_batches(
+        else weighted_batches(
             torch.tensor(sources), cfg.data_weights, cfg.batch_size, cfg.seed, step
         )
     )
@@ -344,7 +311,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     while step < cfg.steps:
         for group in opt.param_groups:
             group["lr"] = learning_rate(cfg, step)
-        rows = next(batches).to(device)
+        rows = next(draws).to(device)
         batch = {k: v[rows] for k, v in train_data.items()}
         if cfg.parked_cars > 0:  # a stream of its own, seeded by the step: resumes exactly
             g = torch.Generator().manual_seed(PARKED_STREAM + cfg.seed * 100003 + step)
@@ -401,4 +368,6 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             model.train()
     if bar is not None:
         bar.close()
+    if not record:  # finished before: the last logged record, not an empty one
+        record = json.loads((out / LOG_FILE).read_text().splitlines()[-1])
     return record
