@@ -148,6 +148,27 @@ def test_save_video_writes_mp4(tmp_path):
     assert back.shape[:3] == (5, 32, 48)
 
 
+def test_gymnasium_record_video_records_an_episode_at_the_policy_rate(tmp_path):
+    """``RecordVideo`` (its moviepy comes with the ``[video]`` extra): one frame at reset and one
+    per policy step, played at ``policy_frequency`` frames per second, so in real time."""
+    pytest.importorskip("moviepy")
+    iio = pytest.importorskip("imageio.v3")
+    from gymnasium.wrappers import RecordVideo
+
+    config = {"duration": 1.0, "policy_frequency": 5}
+    env = gym.make("CounterScene-merge-v0", config=config, render_mode="rgb_array")
+    env = RecordVideo(env, str(tmp_path / "videos"), episode_trigger=lambda episode: True)
+    env.reset(seed=1)
+    steps, done = 0, False
+    while not done:
+        _, _, terminated, truncated, _ = env.step(ZERO)
+        steps, done = steps + 1, terminated or truncated
+    env.close()
+    (video,) = (tmp_path / "videos").glob("*.mp4")
+    assert iio.immeta(video)["fps"] == 5
+    assert iio.imread(video, index=None).shape[0] == steps + 1 == 6
+
+
 def test_save_video_refuses_bad_input(tmp_path):
     with pytest.raises(ValueError, match=r"\.mp4 or \.gif"):
         save_video(video_frames(), tmp_path / "a.avi")
