@@ -200,6 +200,20 @@ def test_a_run_directory_refuses_other_settings(shard, tmp_path, capsys):
     assert code == 1 and "another --out" in err
     assert "sim.guidance: 'full' there, 'none' now" in err  # the field, not only its group
     assert len((tmp_path / "episodes.jsonl").read_text().splitlines()) == 1
+    # A run.json edited by hand is named, not a bare JSON error.
+    (tmp_path / "run.json").write_text("{cut")
+    code, _, err = stress(capsys, *args, "--resume")
+    assert code == 1 and f"{tmp_path / 'run.json'} is not JSON" in err
+
+
+def test_resume_into_an_empty_directory_says_it_starts_the_run(shard, tmp_path, capsys):
+    """``--resume`` is safe to pass every time; a DIR holding nothing (a typo?) is said."""
+    out = tmp_path / "new"
+    args = ["--scenario", shard, "--episodes", "1", "--duration", "0.3", "--quiet"]
+    code, _, err = stress(capsys, *args, "--out", str(out), "--resume")
+    assert code == 0 and f"--resume: {out} holds no episode of this run yet" in err
+    code, _, err = stress(capsys, *args, "--out", str(out), "--resume")
+    assert code == 0 and "--resume" not in err
 
 
 @pytest.mark.slow

@@ -83,7 +83,12 @@ class EpisodeLog:
         self.summarize = summarize
         run = self.dir / "run.json"
         if run.is_file():
-            have = json.loads(run.read_text())
+            try:
+                have = json.loads(run.read_text())
+            except json.JSONDecodeError as exc:
+                raise ValueError(
+                    f"{run} is not JSON ({exc}): it is not a stress run's, or it was edited"
+                ) from None
             if have != self.identity:
                 diff = "; ".join(differences(have, self.identity))
                 raise ValueError(
