@@ -17,11 +17,10 @@ module holds what they share, so that each setting has one source of truth:
   every field by its annotation. Refusals are ``TypeError`` (wrong type) or ``ValueError``
   (wrong value) naming the key, the value and what is allowed.
 - :func:`from_mapping` builds a dataclass from a dict; an unknown key names the valid ones.
-- :func:`field_docs` reads a dataclass's ``Attributes:`` docstring section, and
-  :func:`add_arguments` / :func:`parsed_fields` turn its fields into ``argparse`` flags: a
-  field added to ``SimConfig`` (with its docstring entry) is a ``counterscene stress`` flag
-  and a ``CounterScene-v0`` config key without another line of code (docs/design.md,
-  "Configuration").
+- ``cli/flags.py`` reads a dataclass's ``Attributes:`` docstring section and turns its
+  fields into ``argparse`` flags: a field added to ``SimConfig`` (with its docstring entry)
+  is a ``counterscene stress`` flag and a ``CounterScene-v0`` config key without another
+  line of code (docs/design.md, "Configuration").
 
 This module imports nothing from the package: every layer may use it.
 """

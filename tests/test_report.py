@@ -16,7 +16,7 @@ from conftest import crash_scene
 
 from counterscene_env import metrics
 from counterscene_env.cli import _parser, main
-from counterscene_env.config import parsed_fields
+from counterscene_env.cli.flags import parsed_fields
 from counterscene_env.report import compare_runs, load_run, write_report
 from counterscene_env.report.compare import to_json
 from counterscene_env.report.document import interval
@@ -139,6 +139,8 @@ def test_report_files_and_a_self_contained_page(template, tmp_path):
 def test_records_without_a_plotted_field_get_a_report_that_names_it(template, tmp_path):
     older = [{k: v for k, v in r.items() if k != "ego_peak_deceleration"} for r in mixed(template)]
     run = write_run(tmp_path / "run", older)
+    (run / "plots").mkdir()
+    (run / "plots" / "hist_ego_deceleration.png").write_bytes(b"an earlier report's")
     write_report(run, videos=0, progress=False)
     assert not (run / "plots" / "hist_ego_deceleration.png").exists()
     assert "'ego_peak_deceleration'" in (run / "report.md").read_text()
@@ -416,3 +418,12 @@ def test_videos_of_the_worst_episodes_replay_the_recorded_run(generated, tmp_pat
     md = (run / "report.md").read_text()
     assert "(videos/episode_0000.mp4)" in md and "(videos/episode_0001.gif)" in md
     assert "differs from the record" not in md  # the replays are the recorded episodes
+    # Rebuilt with one video, and with a note of the user's in videos/: the other episode's
+    # video goes (the report no longer links it), the note stays.
+    (run / "videos" / "notes.txt").write_text("mine")
+    assert main(["report", str(run), "--videos", "1", "--quiet"]) == 0
+    assert sorted(p.name for p in (run / "videos").iterdir()) == [
+        f"episode_{worst:04d}.{ext}"
+        for worst in [int(re.search(r"videos/episode_(\d+)\.mp4", md).group(1))]
+        for ext in ("gif", "mp4")
+    ] + ["notes.txt"]

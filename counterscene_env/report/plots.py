@@ -28,6 +28,14 @@ DPI = 110
 
 #: Where the PNGs go, relative to the report's directory.
 PLOTS = Path("plots")
+#: Every plot a run's report may draw (a rebuilt report removes those it no longer draws).
+REPORT_PLOTS = (
+    "cr_hbr_by_second.png",
+    "ade_fde_by_second.png",
+    "hist_min_ttc.png",
+    "hist_min_clearance.png",
+    "hist_ego_deceleration.png",
+)
 
 
 def _save(fig: MplFigure, root: Path, name: str) -> Path:

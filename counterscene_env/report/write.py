@@ -11,7 +11,7 @@ from pathlib import Path
 from counterscene_env.config import check_int
 from counterscene_env.report import html, markdown, ranking
 from counterscene_env.report.command import command_text, stress_argv
-from counterscene_env.report.plots import histograms, per_second_plots
+from counterscene_env.report.plots import PLOTS, REPORT_PLOTS, histograms, per_second_plots
 from counterscene_env.report.run_report import EpisodeVideo, document
 from counterscene_env.report.rundir import Run, load_run
 from counterscene_env.report.tables import per_second_table
@@ -67,7 +67,21 @@ def write_report(directory: str | os.PathLike, videos: int = 3, progress: bool =
     (root / "report.md").write_text(markdown.render(blocks))
     page = root / "report.html"
     page.write_text(html.render(blocks, root, f"Stress report: {run.name}"))
+    kept = {f.path for f in [*figs, *hist_figs]}
+    kept |= {p for v in made.values() for p in (v.mp4, v.gif) if p is not None}
+    _drop_stale(root, kept)
     return page
+
+
+def _drop_stale(root: Path, kept: set[Path]) -> None:
+    """Remove what an earlier report of this run wrote and this one did not (videos of
+    episodes no longer among the worst, a histogram the records no longer support), so the
+    directory holds this report's files only. Other files are left alone."""
+    stale = [*root.glob(f"{VIDEOS}/episode_*.mp4"), *root.glob(f"{VIDEOS}/episode_*.gif")]
+    stale += [root / PLOTS / name for name in REPORT_PLOTS]
+    for path in stale:
+        if path.relative_to(root) not in kept:
+            path.unlink(missing_ok=True)
 
 
 _NO_VIDEOS = "No videos were asked for (counterscene report DIR --videos K makes K)."
