@@ -467,6 +467,34 @@ def test_time_to_collision_observation_needs_discrete_meta_action():
     env.close()
 
 
+def test_the_parts_of_a_tuple_observation_keep_the_rules_of_a_whole_one():
+    """Inside a ``TupleObservation`` too: ``Kinematics`` keeps to ``vehicles_count`` rows and
+    its [-1, 1] bounds, and ``TimeToCollision`` needs ``DiscreteMetaAction``."""
+    parts = [{"type": "Kinematics", "vehicles_count": 1}, {"type": "OccupancyGrid"}]
+    tuple_obs = {"type": "TupleObservation", "observation_configs": parts}
+    env = gym.make("CounterScene-merge-v0", config={**SHORT, "observation": tuple_obs})
+    assert env.observation_space[0] == gym.spaces.Box(-1.0, 1.0, (1, 5), np.float32)
+    _, steps = run_episode(env, 0)
+    assert all(env.observation_space.contains(s[0]) for s in steps)
+    env.close()
+    parts[1] = {"type": "TimeToCollision"}
+    with pytest.raises(ValueError, match="DiscreteMetaAction"):
+        gym.make("CounterScene-merge-v0", config={**SHORT, "observation": tuple_obs})
+
+
+def test_grayscale_frames_are_drawn_headless():
+    """highway-env's viewer draws nothing under ``SDL_VIDEODRIVER=dummy`` (set for the
+    tests); a ``GrayscaleObservation`` still gets the road and the vehicles."""
+    gray = {"type": "GrayscaleObservation", "observation_shape": (64, 32), "stack_size": 2,
+            "weights": [0.2989, 0.5870, 0.1140]}  # fmt: skip
+    env = gym.make("CounterScene-merge-v0", config={**SHORT, "observation": gray})
+    env.reset(seed=0)
+    obs, *_ = env.step(ZERO)
+    assert env.observation_space.contains(obs)
+    assert len(np.unique(obs[-1])) > 3, "a blank frame"
+    env.close()
+
+
 def test_lane_features_see_the_current_lanes():
     """Lane-relative features are computed on each vehicle's current lane."""
     obs_config = {"type": "Kinematics", "features": ["presence", "x", "y", "lat_off"]}

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 from gymnasium import spaces
-from highway_env.envs.common.observation import KinematicObservation
+from highway_env.envs.common.observation import GrayscaleObservation, KinematicObservation
 
 from counterscene_env.envs.kinematics import observe_kinematics
 
@@ -130,16 +130,26 @@ def kept_if_unchanged(old: spaces.Space | None, new: spaces.Space) -> spaces.Spa
 
 
 def capped_observation_space(obs_type: Any, space: spaces.Space) -> spaces.Space:
-    """``space``, highway-env's space of observation type ``obs_type`` (one per ego under
-    ``MultiAgentObservation``), bounded by :func:`bounded_space`; every ``Kinematics`` type
-    of it becomes a :class:`RowCappedKinematics` (its rows kept to ``vehicles_count``)."""
-    per_ego = getattr(obs_type, "agents_observation_types", None)
-    for t in per_ego or [obs_type]:
-        if type(t) is KinematicObservation:
-            t.__class__ = RowCappedKinematics
-    if per_ego is None:
-        return bounded_space(space, obs_type)
-    return spaces.Tuple([bounded_space(s, t) for s, t in zip(space.spaces, per_ego, strict=True)])
+    """``space``, highway-env's space of observation type ``obs_type`` (one part per ego
+    under ``MultiAgentObservation``, per part under ``TupleObservation``), each part bounded
+    by :func:`bounded_space`; every ``Kinematics`` part becomes a :class:`RowCappedKinematics`
+    (its rows kept to ``vehicles_count``), and every ``GrayscaleObservation`` part draws
+    headless."""
+    parts = getattr(obs_type, "agents_observation_types", None)
+    parts = parts if parts is not None else getattr(obs_type, "observation_types", None)
+    if parts is not None:
+        return spaces.Tuple(
+            [capped_observation_space(t, s) for t, s in zip(parts, space.spaces, strict=True)]
+        )
+    if type(obs_type) is KinematicObservation:
+        obs_type.__class__ = RowCappedKinematics
+    if isinstance(obs_type, GrayscaleObservation):
+        # highway-env's viewer turns itself off under SDL_VIDEODRIVER=dummy (its "no window"
+        # switch), and the frames would be zeros or not depending on whether anything in the
+        # process had set it. This viewer always draws onto an off-screen surface, which
+        # needs no display: it is turned back on.
+        obs_type.viewer.enabled = True
+    return bounded_space(space, obs_type)
 
 
 def reads_lanes(observation: dict) -> bool:

@@ -68,13 +68,20 @@ def check_types(config: Mapping[str, Any], egos: int, env: Any = None) -> None:
         act = check_type_dict("action.action_config", act.get("action_config"), ACTION_TYPES)
     check_observation(obs, obs_name)
     _check_action(act, "action.action_config" if multi[1] else "action")
-    if obs["type"] == "TimeToCollision" and act["type"] != "DiscreteMetaAction":
+    if "TimeToCollision" in _leaf_types(obs) and act["type"] != "DiscreteMetaAction":
         raise ValueError(
             "the TimeToCollision observation needs the DiscreteMetaAction action type "
             "(its grid is over the ego's target speeds)"
         )
     if env is not None:
         _build_on_scratch(env, config)
+
+
+def _leaf_types(obs: Mapping[str, Any]) -> list[str]:
+    """The observation types of a checked config, a ``TupleObservation``'s parts in turn."""
+    if obs["type"] != "TupleObservation":
+        return [obs["type"]]
+    return [t for part in obs["observation_configs"] for t in _leaf_types(part)]
 
 
 def check_pair(key: str, value: Any) -> tuple[float, float]:
