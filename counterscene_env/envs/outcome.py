@@ -101,6 +101,16 @@ class EgoOutcomes:
         ``CounterSceneEnv``'s docstring)."""
         return step_info([f[k] for f in self.frame_infos], self.scene.scenario_id)
 
+    def ego_step_info(self, k: int = 0) -> dict:
+        """Ego ``k``'s info as the envs return it: :meth:`ego_info` with its reward terms
+        (``rewards``), highway-env's ``speed`` [m/s] and ``crashed``."""
+        info = self.ego_info(k)
+        info["rewards"] = reward_terms(info, self.config["reward_speed_range"])
+        vehicle = self.controlled_vehicles[k]
+        info["speed"] = float(vehicle.speed)
+        info["crashed"] = bool(vehicle.crashed or info["collision"])
+        return info
+
     def ego_rewards(self, k: int = 0) -> dict[str, float]:
         return reward_terms(self.ego_info(k), self.config["reward_speed_range"])
 
@@ -157,10 +167,7 @@ class EgoOutcomes:
         return self.episode.done and not any(self.ended)
 
     def _info(self, obs: Any, action: Any = None) -> dict:
-        info = self.ego_info(0)
-        info["rewards"] = self.ego_rewards(0)
-        info["speed"] = float(self.vehicle.speed)
-        info["crashed"] = bool(self.vehicle.crashed or info["collision"])
+        info = self.ego_step_info(0)
         if self.steps and (any(self.ended) or self.episode.done):
             info["metrics"] = self.episode_metrics(0)
         return info

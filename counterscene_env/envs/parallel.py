@@ -9,7 +9,8 @@ traffic. Under the hood it is :class:`~counterscene_env.envs.single_agent.Counte
 agent sees and acts exactly as the single-agent env's ego does (same config keys).
 
 An ego that collides or leaves the road (as configured) is terminated and removed from
-``agents``; it stays in the world as a crashed vehicle that brakes to a stop. At the time limit
+``agents``; it stays in the world as a crashed vehicle that brakes to a stop (an action
+still given for it is ignored). At the time limit
 every remaining ego is truncated. Observations are per agent, rewards are each ego's own
 (the single-agent reward terms), infos are each ego's step info (+ ``metrics`` at its end).
 """
@@ -125,7 +126,7 @@ class CounterSceneParallelEnv(ParallelEnv):
         self.metadata["render_fps"] = self.core.metadata["render_fps"]  # policy_frequency
         self.agents = list(self.possible_agents)
         observations = {a: obs[k] for k, a in enumerate(self.possible_agents)}
-        infos = {a: self.core.ego_info(k) for k, a in enumerate(self.possible_agents)}
+        infos = {a: self.core.ego_step_info(k) for k, a in enumerate(self.possible_agents)}
         return observations, infos
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
@@ -136,12 +137,14 @@ class CounterSceneParallelEnv(ParallelEnv):
                 f"actions must be a dict of agent name -> action ({self.agents}), "
                 f"got {type(actions).__name__}"
             )
+        # An action for an agent that is done is ignored, as PettingZoo's own wrappers do (a
+        # loop over the last observations still holds it); an unknown name is a mistake.
         missing = sorted(set(self.agents) - set(actions))
-        extra = sorted(set(actions) - set(self.agents))
+        extra = sorted(set(actions) - set(self.possible_agents), key=str)
         if missing or extra:
             raise ValueError(
                 f"step needs one action per live agent {self.agents}; missing {missing}, "
-                f"unexpected {extra}"
+                f"unknown {extra}"
             )
         core = self.core
         for a in self.agents:  # every action is checked before any is applied
@@ -154,8 +157,7 @@ class CounterSceneParallelEnv(ParallelEnv):
             rewards[a] = core.ego_reward(k)
             terminations[a] = core.ego_terminated(k)
             truncations[a] = core.ego_truncated(k)
-            info = core.ego_info(k)
-            info["rewards"] = core.ego_rewards(k)
+            info = core.ego_step_info(k)
             if terminations[a] or truncations[a]:
                 info["metrics"] = core.episode_metrics(k)
             infos[a] = info
