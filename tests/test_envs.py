@@ -467,6 +467,21 @@ def test_time_to_collision_observation_needs_discrete_meta_action():
     env.close()
 
 
+def test_configure_mid_episode_applies_from_the_next_reset():
+    """The episode's clock and length stay as they were at reset; the next episode has the
+    new ones (policy_frequency applied at once used to shorten the steps while the length
+    stayed)."""
+    env = gym.make("CounterScene-merge-v0", config=SHORT)
+    env.reset(seed=0)
+    env.step(ZERO)
+    env.unwrapped.configure({"policy_frequency": 5, "duration": 0.4})
+    times = [env.step(ZERO)[4]["time"] for _ in range(9)]
+    assert times == [k / 10 for k in range(2, 11)]
+    _, steps = run_episode(env, 0)
+    assert [s[4]["time"] for s in steps] == [0.2, 0.4]
+    env.close()
+
+
 def test_the_parts_of_a_tuple_observation_keep_the_rules_of_a_whole_one():
     """Inside a ``TupleObservation`` too: ``Kinematics`` keeps to ``vehicles_count`` rows and
     its [-1, 1] bounds, and ``TimeToCollision`` needs ``DiscreteMetaAction``."""

@@ -43,6 +43,7 @@ class SimulationFrames:
     episode: Episode
     steps: int  # frames simulated in the episode (highway-env's counter)
     recording_ahead: bool  # a scene is recorded in the background (scene/prefetch.py)
+    frames_per_step: int  # frames of a policy step, fixed at reset (policy_frequency then)
     #: Frames of the current policy step still to simulate (set by ``begin_frames``).
     _frames_left: int = 0
 
@@ -66,7 +67,7 @@ class SimulationFrames:
     def begin_frames(self) -> None:
         """Start a policy step's simulation frames (after the action is applied)."""
         self.frame_infos = []
-        self._frames_left = self.config["simulation_frequency"] // self.config["policy_frequency"]
+        self._frames_left = self.frames_per_step
 
     def advance_egos(self) -> np.ndarray:
         """Step every ego's highway-env vehicle by one frame; ``[E, 4]`` their new states

@@ -293,6 +293,9 @@ class CounterSceneEnv(EgoOutcomes, SimulationFrames, AbstractEnv):
         self.scene, self.egos = scene, egos
         self.frame_infos = [[dict(i) for i in self.loop.infos(self.slot)]]
         self.ended = [False] * len(egos)
+        # The episode's clock is fixed here, as its closed-loop settings are: a configure()
+        # mid-episode applies from the next reset on (docs/environment.md, "Config").
+        self.frames_per_step = config["simulation_frequency"] // config["policy_frequency"]
 
         self.mirror = build_mirror(
             scene,
@@ -340,7 +343,7 @@ class CounterSceneEnv(EgoOutcomes, SimulationFrames, AbstractEnv):
 
     def begin_step(self, action: Any) -> None:
         """Apply a checked action and start the policy step's frames."""
-        self.time += 1 / self.config["policy_frequency"]
+        self.time += self.frames_per_step / self.config["simulation_frequency"]
         if not self.config["manual_control"]:
             self.action_type.act(as_highway_action(action))
         self.begin_frames()
@@ -362,7 +365,7 @@ class CounterSceneEnv(EgoOutcomes, SimulationFrames, AbstractEnv):
             types = self.action_type.agents_action_types
             for k, action in actions.items():
                 types[k].act(as_highway_action(action))
-            self.time += 1 / self.config["policy_frequency"]
+            self.time += self.frames_per_step / self.config["simulation_frequency"]
             self.begin_frames()
             self._simulate()
             return self.observation_type.observe()
