@@ -551,6 +551,20 @@ def test_multi_ego_gym_env_refuses_steps_after_termination():
     env.close()
 
 
+def test_calls_that_need_an_episode_say_so_before_the_first_reset():
+    """Past Gymnasium's order check (``env.unwrapped``), and in the PettingZoo env."""
+    env = gym.make("CounterScene-merge-v0", config=SHORT, render_mode="rgb_array").unwrapped
+    for call in (env.render, lambda: env.episode, lambda: env.step(ZERO)):
+        with pytest.raises(RuntimeError, match=r"call reset\(\) first"):
+            call()
+    env.close()
+    pair = counterscene_env.parallel_env(num_egos=2, config=SHORT, render_mode="rgb_array")
+    for call in (pair.state, pair.render):
+        with pytest.raises(RuntimeError, match=r"call reset\(\) first"):
+            call()
+    pair.close()
+
+
 def test_render_fps_is_per_instance():
     a = gym.make("CounterScene-merge-v0", config={**SHORT, "policy_frequency": 2})
     b = gym.make("CounterScene-merge-v0", config=SHORT)

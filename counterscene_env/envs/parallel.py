@@ -97,6 +97,7 @@ class CounterSceneParallelEnv(ParallelEnv):
         (``state_space``); for Box observations only."""
         if self.state_space is None:
             raise NotImplementedError("state() needs Box observations")
+        self.core.episode  # noqa: B018 -- raises before the first reset, naming it
         return np.stack(self.core.observation_type.observe())
 
     def observation_space(self, agent: str) -> spaces.Space:

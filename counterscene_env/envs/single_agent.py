@@ -223,7 +223,12 @@ class CounterSceneEnv(EgoOutcomes, SimulationFrames, AbstractEnv):
 
     @property
     def episode(self) -> Episode:
-        """This env's current closed-loop episode (a public record of ``sim/``)."""
+        """This env's current closed-loop episode (a public record of ``sim/``).
+
+        Raises:
+            RuntimeError: before the first ``reset()``."""
+        if self.loop is None or self.slot >= len(self.loop.episodes):
+            raise RuntimeError("no episode yet: call reset() first")
         return self.loop.episodes[self.slot]
 
     # ------------------------------------------------------------------ episode
@@ -376,8 +381,6 @@ class CounterSceneEnv(EgoOutcomes, SimulationFrames, AbstractEnv):
         """Raise unless a step can run (``every_ego``: and no ego's episode has ended)."""
         if self._failure is not None:
             raise RuntimeError(f"{self._failure}: the episode cannot go on, call reset()")
-        if self.loop is None or self.slot >= len(self.loop.episodes):
-            raise RuntimeError("call reset() before step()")
         if self.episode.done or (every_ego and any(self.ended)):
             raise RuntimeError("the episode is over (terminated or truncated): call reset()")
 
@@ -405,4 +408,6 @@ class CounterSceneEnv(EgoOutcomes, SimulationFrames, AbstractEnv):
 
     # ------------------------------------------------------------------ rendering
     def render(self) -> np.ndarray | None:
+        if self.render_mode is not None:
+            self.episode  # noqa: B018 -- raises before the first reset, naming it
         return render_frame(self)
