@@ -88,6 +88,15 @@ def test_round_trip(saved):
     assert meta["architecture"] == model.config.to_dict()
 
 
+def test_loading_leaves_the_global_torch_generator_alone(saved):
+    """A user's ``torch.manual_seed(0)`` draws the same after a model load (a ``gym.make``)."""
+    torch.manual_seed(0)
+    expected = torch.rand(3)
+    torch.manual_seed(0)
+    load_model(saved[1])
+    assert torch.equal(torch.rand(3), expected)
+
+
 def test_save_overwrites_and_leaves_no_temporary_files(saved):
     _, out = saved
     other = _model(seed=1)

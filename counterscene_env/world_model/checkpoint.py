@@ -176,7 +176,10 @@ def _read_weights(path: Path) -> dict[str, torch.Tensor]:
 def _build_model(path: Path, config: ModelConfig, normalization: Normalization) -> WorldModel:
     """An untrained ``WorldModel`` of the checkpoint's architecture and normalization."""
     try:
-        return WorldModel(config, normalization)
+        # Its initial values are overwritten by the checkpoint's: drawing them must not move
+        # the user's global torch generator (a gym.make would change their later draws).
+        with torch.random.fork_rng(devices=[]):
+            return WorldModel(config, normalization)
     except (TypeError, ValueError, RuntimeError, ZeroDivisionError) as exc:
         raise CheckpointError(f"{path / CONFIG}: cannot build the architecture: {exc}") from None
 
