@@ -499,8 +499,9 @@ def test_the_parts_of_a_tuple_observation_keep_the_rules_of_a_whole_one():
 
 def test_grayscale_frames_are_drawn_headless():
     """highway-env's viewer draws nothing under ``SDL_VIDEODRIVER=dummy`` (set for the
-    tests); a ``GrayscaleObservation`` still gets the road and the vehicles."""
-    gray = {"type": "GrayscaleObservation", "observation_shape": (64, 32), "stack_size": 2,
+    tests); a ``GrayscaleObservation`` still gets the road and the vehicles. Its shape may
+    be a list, as JSON has it (highway-env needs a tuple)."""
+    gray = {"type": "GrayscaleObservation", "observation_shape": [64, 32], "stack_size": 2,
             "weights": [0.2989, 0.5870, 0.1140]}  # fmt: skip
     env = gym.make("CounterScene-merge-v0", config={**SHORT, "observation": gray})
     env.reset(seed=0)

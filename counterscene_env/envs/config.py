@@ -124,6 +124,8 @@ def prepare(
         raise ValueError(f"unknown CounterScene config keys {unknown}; valid keys: {sorted(valid)}")
     # A copy: later changes to the caller's (nested) dicts do not reach the env.
     candidate = {**current, **copy.deepcopy(dict(update))}
+    if isinstance(candidate.get("observation"), Mapping):
+        candidate["observation"] = json_shapes_as_tuples(candidate["observation"])
     validate(candidate, env)
     if source is None or candidate["scenario"] != current["scenario"]:
         source = SceneSource(candidate["scenario"])  # raises on an unknown scenario
@@ -201,6 +203,23 @@ def check_episode_inputs(
         if not isinstance(scene, Scene):
             raise TypeError(f"{names[1]} must be a Scene, got {type(scene).__name__}")
         pick_egos(scene, egos)
+
+
+def json_shapes_as_tuples(observation: Mapping[str, Any]) -> dict[str, Any]:
+    """``observation`` with each ``observation_shape`` list made a tuple, in every part:
+    highway-env's ``GrayscaleObservation`` needs a tuple, and a config read from JSON (an
+    SB3 sidecar, ``--env-config``) has lists."""
+    out = dict(observation)
+    if isinstance(out.get("observation_shape"), list):
+        out["observation_shape"] = tuple(out["observation_shape"])
+    if isinstance(out.get("observation_config"), Mapping):
+        out["observation_config"] = json_shapes_as_tuples(out["observation_config"])
+    if isinstance(out.get("observation_configs"), list):
+        out["observation_configs"] = [
+            json_shapes_as_tuples(p) if isinstance(p, Mapping) else p
+            for p in out["observation_configs"]
+        ]
+    return out
 
 
 def validate(config: Mapping[str, Any], env: Any = None) -> None:
