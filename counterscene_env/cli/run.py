@@ -220,7 +220,9 @@ def _cmd_stress(args: argparse.Namespace) -> int:
             )
     before = 0 if log is None else len(log.records)
     if args.resume and not before:  # a mistyped DIR would otherwise pass unnoticed
-        print(f"--resume: {args.out} holds no episode of this run yet; starting it", file=sys.stderr)
+        print(
+            f"--resume: {args.out} holds no episode of this run yet; starting it", file=sys.stderr
+        )
     start = time.perf_counter()
     try:
         records = _run_stress(args, config, model, env_config, log)
