@@ -106,6 +106,48 @@ def test_bad_flags_are_refused_in_one_line_before_any_work(tmp_path, args, words
     assert sorted(p.name for p in tmp_path.iterdir()) == ["X"]  # nothing written
 
 
+def test_a_directory_being_written_refuses_a_second_command(tmp_path, capsys):
+    """Two commands writing one --out would interleave their records: the second is refused
+    at once and writes nothing; the directory is free again when the first ends."""
+    from counterscene_env.cli.lock import out_lock
+
+    out = tmp_path / "run"
+    argv = ["generate", "--scenario", "merge", "--scenes", "1", "--quiet", "--out", str(out)]
+    with out_lock(out, "generate"):
+        assert main(argv) == 1
+        assert f"{out} is being written by counterscene generate (pid " in capsys.readouterr().err
+        assert not out.exists()
+        with out_lock(tmp_path / "other", "stress"):  # another directory is another lock
+            pass
+    with out_lock(out, "generate"):  # released
+        pass
+
+
+def test_os_errors_and_a_closed_pipe_end_in_one_line_or_quietly(tmp_path):
+    """An output path that cannot be made is one line, not a traceback; a reader that goes
+    away (``| head``) ends the command quietly with the shell's SIGPIPE status."""
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    out = _run("generate", "--scenario", "merge", "--scenes", "1", "--out", str(blocker / "sub"))
+    assert out.returncode == 1 and "Traceback" not in out.stderr, out.stderr
+    assert "Not a directory" in out.stderr
+    shards = tmp_path / "scenes"
+    assert (
+        _run(
+            "generate", "--scenario", "merge", "--scenes", "1", "--quiet", "--out", str(shards)
+        ).returncode
+        == 0
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "counterscene_env.cli", "inspect", str(shards)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    proc.stdout.close()
+    assert proc.wait(timeout=120) == 141
+    assert proc.stderr.read() == b""
+
+
 def test_ctrl_c_stops_a_resumable_command_in_one_line(monkeypatch, capsys):
     """Ctrl-C in generate, train or paper-tables: no traceback, the shell's exit code, and how
     to go on (what finished is on disk: rerunning the command resumes)."""

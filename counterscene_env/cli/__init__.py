@@ -17,10 +17,14 @@ Subcommands import what they need when they run, so ``counterscene --help`` is i
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from counterscene_env.cli import bench, data, evaluate, model, paper, report, run
 from counterscene_env.cli.run import STOPPED_EXIT_CODE
+
+#: A shell's status of a command killed by SIGPIPE (128 + 13).
+BROKEN_PIPE_EXIT_CODE = 141
 
 #: What a command stopped by Ctrl-C keeps: each of these rerun as it was goes on from there.
 RESUMABLE = {
@@ -38,16 +42,34 @@ def main(argv: list[str] | None = None) -> int:
     if not hasattr(args, "func"):
         parser.print_help()
         return 2
+    written = _written_directory(args)
     try:
-        return int(args.func(args) or 0)
-    except (ValueError, TypeError, FileNotFoundError, RuntimeError) as exc:
-        # Errors users can act on: one clear line, no traceback.
+        if written is None:
+            return int(args.func(args) or 0)
+        from counterscene_env.cli.lock import out_lock
+
+        with out_lock(written, args.command):
+            return int(args.func(args) or 0)
+    except BrokenPipeError:  # the reader went away (| head): stop quietly, as Unix tools do
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return BROKEN_PIPE_EXIT_CODE
+    except (ValueError, TypeError, RuntimeError, OSError) as exc:
+        # Errors users can act on (bad input, a path that cannot be read or made): one clear
+        # line, no traceback.
         print(f"counterscene {args.command}: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:  # Ctrl-C (stress handles its own: it writes a partial report)
         hint = RESUMABLE.get(args.command, "")
         print(f"counterscene {args.command}: stopped{hint}", file=sys.stderr)
         return STOPPED_EXIT_CODE
+
+
+def _written_directory(args: argparse.Namespace) -> str | None:
+    """The directory the command writes into (``--out``; ``report``'s run directory), which
+    one command at a time may write (``cli/lock.py``)."""
+    if args.command == "report":
+        return args.directory
+    return getattr(args, "out", None)
 
 
 def _parser() -> argparse.ArgumentParser:
