@@ -171,3 +171,34 @@ def test_ctrl_c_leaves_a_partial_summary_and_resume_finishes_the_run(shard, tmp_
     whole = tmp_path / "whole"
     assert (run / "metrics.json").read_bytes() == (whole / "metrics.json").read_bytes()
     assert json.loads((run / "metrics.json").read_text())["complete"] is True
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "args",
+    [
+        # Fresh scenes: the next one is recorded by a background process (scene/prefetch.py).
+        ["stress", "--scenario", "merge", "--episodes", "6", "--batch", "1", *SHORT],
+        ["generate", "--scenario", "merge", "--scenes", "12", "--shard-size", "1", "--workers",
+         "2", "--quiet"],
+    ],
+)  # fmt: skip
+def test_a_terminals_ctrl_c_stops_every_process_in_one_line(tmp_path, args):
+    """A terminal sends Ctrl-C to the whole process group, helpers included: the command
+    says it stopped, in one line and no traceback, and no process of it is left."""
+    out = tmp_path / "out"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-c", INTERRUPTIBLE, *args, "--out", str(out)]
+    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None:
+        if any(p.suffix in (".jsonl", ".npz") and p.stat().st_size for p in out.glob("*")):
+            break
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err[-2000:]
+    assert "Traceback" not in err and f"counterscene {args[0]}: stopped" in err
+    time.sleep(1)
+    left = subprocess.run(["pgrep", "-g", str(proc.pid)], capture_output=True, text=True)
+    assert left.stdout.split() == []

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import signal
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from pathlib import Path
@@ -173,10 +174,18 @@ def _build(
         total=target, disable=not progress, unit="scene", desc=params.get("scenario", "convert")
     )
     bar.update(sum(s["scenes"] for s in done.values()))
-    pool = ProcessPoolExecutor(max_workers=workers) if workers > 1 else None
+    pool = (
+        ProcessPoolExecutor(max_workers=workers, initializer=_ignore_sigint)
+        if workers > 1
+        else None
+    )
     loop = _BlockLoop(out, manifest, params, done, target, num_blocks, block_args, workers, pool)
     try:
         loop.run(bar)
+    except BaseException:  # Ctrl-C or a failure: the blocks in hand are not wanted any more
+        if pool is not None:
+            _stop_workers(pool)
+        raise
     finally:
         for fut in loop.pending:
             fut.cancel()
@@ -186,6 +195,25 @@ def _build(
     if target is not None:
         _truncate(out, manifest, done, target)
     return write_manifest(out, manifest, done, target)
+
+
+def _ignore_sigint() -> None:
+    """A worker's start: a Ctrl-C at the terminal is the parent's to handle (each worker
+    printed a traceback, and the pool broke under the parent's shutdown)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _stop_workers(pool: ProcessPoolExecutor) -> None:
+    """End the workers at once (their shards are written whole or not at all, and only the
+    blocks collected are in the manifest), so the parent's shutdown does not wait for them.
+    Python 3.14 has ``terminate_workers``; before it the pool's processes are reached
+    directly."""
+    terminate = getattr(pool, "terminate_workers", None)
+    if terminate is not None:
+        terminate()
+        return
+    for process in list((pool._processes or {}).values()):
+        process.terminate()
 
 
 class _BlockLoop:

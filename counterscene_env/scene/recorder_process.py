@@ -79,6 +79,9 @@ class Recorder:
             stdout=subprocess.PIPE,
             env=env,
             bufsize=0,
+            # Its own session: a Ctrl-C at the terminal goes to the command, which ends the
+            # child by closing its pipe (a child in the terminal's group printed a traceback).
+            start_new_session=True,
         )
         self.next_ticket = 0
         self.open: set[int] = set()  # sent, no ``done`` yet

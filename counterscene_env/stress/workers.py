@@ -157,6 +157,9 @@ def _next_result(results, procs) -> tuple[int, list[dict]]:
 def _stop(procs, tasks, wait: bool) -> None:
     """End the workers: after a finished run (``wait``) on a sentinel each, as they are idle;
     after a stop or failure at once, since their batches are not wanted any more."""
+    # Batches never taken stay in the queue: do not wait to flush them at exit. First, so
+    # that a second Ctrl-C during the joins below cannot leave the exit waiting on it.
+    tasks.cancel_join_thread()
     if wait:
         for _ in procs:
             tasks.put(None)
@@ -167,8 +170,6 @@ def _stop(procs, tasks, wait: bool) -> None:
         if p.is_alive():
             p.terminate()
             p.join()
-    # Batches never taken stay in the queue: do not wait to flush them at exit.
-    tasks.cancel_join_thread()
     tasks.close()
 
 
