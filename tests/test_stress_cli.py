@@ -254,18 +254,26 @@ def test_a_killed_stress_process_loses_no_finished_episode(shard, tmp_path):
     assert metrics[0] == metrics[1]
 
 
+def _record(episode: int, **values) -> dict:
+    """An episode record with every field a reader requires (placeholder values)."""
+    from counterscene_env.stress.log import REQUIRED_FIELDS
+
+    return {**{k: 0 for k in REQUIRED_FIELDS}, "per_second": {}, "episode": episode, **values}
+
+
 def test_a_log_whose_last_line_lost_its_newline_appends_on_a_new_line(tmp_path):
     from counterscene_env.stress import EpisodeLog
 
     (tmp_path / "run.json").write_text('{"scenario": "merge"}')
-    (tmp_path / "episodes.jsonl").write_text('{"episode": 0}\n{"episode": 1}')
+    text = f"{json.dumps(_record(0))}\n{json.dumps(_record(1))}"
+    (tmp_path / "episodes.jsonl").write_text(text)
     with pytest.raises(ValueError, match="pass --resume"):
         EpisodeLog(tmp_path, {"scenario": "merge"})
     log = EpisodeLog(tmp_path, {"scenario": "merge"}, resume=True)
     assert [r["episode"] for r in log.records] == [0, 1]
     # Opening changes nothing; the repair comes with the first append.
-    assert (tmp_path / "episodes.jsonl").read_text() == '{"episode": 0}\n{"episode": 1}'
-    log.append([{"episode": 2}])
+    assert (tmp_path / "episodes.jsonl").read_text() == text
+    log.append([_record(2)])
     lines = (tmp_path / "episodes.jsonl").read_text().splitlines()
     assert [json.loads(x)["episode"] for x in lines] == [0, 1, 2]
 
@@ -278,12 +286,10 @@ def test_episode_timings_are_read_back_and_a_lost_one_is_left_out(tmp_path):
 
     identity = {"scenario": "merge"}
     log = EpisodeLog(tmp_path, identity)
-    log.append([{"episode": 0, "replans": 2, "seconds": 1.5, "replan_seconds": 1.0}])
-    log.append([{"episode": 1, "replans": 2, "seconds": 2.5, "replan_seconds": 2.0}])
-    assert json.loads((tmp_path / "episodes.jsonl").read_text().splitlines()[1]) == {
-        "episode": 1,
-        "replans": 2,
-    }
+    log.append([_record(0, replans=2, seconds=1.5, replan_seconds=1.0)])
+    log.append([_record(1, replans=2, seconds=2.5, replan_seconds=2.0)])
+    line = json.loads((tmp_path / "episodes.jsonl").read_text().splitlines()[1])
+    assert line == _record(1, replans=2)  # no timing in the results' file
     again = EpisodeLog(tmp_path, identity, resume=True).records
     assert [(r["seconds"], r["replan_seconds"]) for r in again] == [(1.5, 1.0), (2.5, 2.0)]
     assert timings(again)["seconds_per_episode"] == 2.0
@@ -295,7 +301,7 @@ def test_episode_timings_are_read_back_and_a_lost_one_is_left_out(tmp_path):
     assert timings(cut)["seconds_per_replan"] == 0.5
     # The next append starts on a line of its own after the cut one, and is read back.
     resumed = EpisodeLog(tmp_path, identity, resume=True)
-    resumed.append([{"episode": 2, "replans": 1, "seconds": 0.5, "replan_seconds": 0.25}])
+    resumed.append([_record(2, replans=1, seconds=0.5, replan_seconds=0.25)])
     read = EpisodeLog(tmp_path, identity, resume=True).records
     assert [r.get("seconds") for r in read] == [1.5, None, 0.5]
     # A run written before the split (timings inside episodes.jsonl) reads the same.
@@ -304,3 +310,17 @@ def test_episode_timings_are_read_back_and_a_lost_one_is_left_out(tmp_path):
     (old / "run.json").write_text(json.dumps(identity))
     (old / "episodes.jsonl").write_text(json.dumps(log.records[0]) + "\n")
     assert EpisodeLog(old, identity, resume=True).records == again[:1]
+
+
+def test_resume_checks_the_records_before_running_anything(tmp_path):
+    """A record without a field the summary reads is named when the log is opened, before
+    a resumed run adds an episode (it used to run one, then fail on a KeyError)."""
+    from counterscene_env.stress import EpisodeLog
+
+    (tmp_path / "run.json").write_text('{"scenario": "merge"}')
+    broken = {k: v for k, v in _record(1).items() if k != "min_ttc"}
+    text = f"{json.dumps(_record(0))}\n{json.dumps(broken)}\n"
+    (tmp_path / "episodes.jsonl").write_text(text)
+    with pytest.raises(ValueError, match=r"episodes.jsonl: line 2 has no field 'min_ttc'"):
+        EpisodeLog(tmp_path, {"scenario": "merge"}, resume=True)
+    assert (tmp_path / "episodes.jsonl").read_text() == text

@@ -12,21 +12,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from counterscene_env.stress.log import merge_timings, record_from_json
-
-#: Record fields every report and comparison reads; a record without one is refused.
-REQUIRED_FIELDS = (
-    "episode",
-    "seed",
-    "scenario_id",
-    "per_second",
-    "cr",
-    "cr_ego_adversary",
-    "hbr_ego",
-    "orr",
-    "min_ttc",
-    "min_clearance_adversary",
-)
+from counterscene_env.stress.log import merge_timings, read_records, record_from_json
 
 
 @dataclass(frozen=True)
@@ -113,26 +99,9 @@ def _read_json(path: Path) -> dict | None:
 
 
 def _read_records(path: Path) -> tuple[list[dict], int]:
-    """The records of ``episodes.jsonl`` and the number of cut lines skipped (a kill
-    mid-write cuts at most the last line)."""
-    lines = path.read_text().splitlines()
-    records, cut = [], 0
-    for n, line in enumerate(lines, start=1):
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            if n != len(lines):
-                raise ValueError(f"{path}: line {n} is not JSON") from None
-            cut = 1
-            continue
-        missing = [k for k in REQUIRED_FIELDS if k not in rec]
-        if missing:
-            raise ValueError(f"{path}: line {n} has no field {', '.join(map(repr, missing))}")
-        if rec["episode"] != len(records):
-            raise ValueError(
-                f"{path}: line {n} is episode {rec['episode']!r}, expected {len(records)}"
-            )
-        records.append(record_from_json(rec))
+    """The records of ``episodes.jsonl`` (``stress.log.read_records``) and the number of cut
+    lines skipped."""
+    records, _, cut = read_records(path)
     if not records:
         raise ValueError(f"{path}: no finished episode")
-    return merge_timings(records, path.parent), cut
+    return merge_timings([record_from_json(r) for r in records], path.parent), cut

@@ -23,6 +23,20 @@ from counterscene_env import metrics
 TIMING_KEYS = ("seconds", "replan_seconds")
 #: The per-episode timings' file, beside ``episodes.jsonl``.
 TIMINGS_FILE = "episode_timings.jsonl"
+#: Record fields every summary, report and comparison reads; a record without one is
+#: refused when the file is read (before a resumed run adds to it).
+REQUIRED_FIELDS = (
+    "episode",
+    "seed",
+    "scenario_id",
+    "per_second",
+    "cr",
+    "cr_ego_adversary",
+    "hbr_ego",
+    "orr",
+    "min_ttc",
+    "min_clearance_adversary",
+)
 
 
 def differences(have: dict, want: dict, prefix: str = "") -> list[str]:
@@ -109,21 +123,10 @@ class EpisodeLog:
         dropped (and removed from the file at the next append)."""
         if not self.path.is_file():
             return []
-        text = self.path.read_text()
-        lines = text.splitlines()
-        records = []
-        for n, line in enumerate(lines):
-            try:
-                records.append(json.loads(line))
-            except json.JSONDecodeError:
-                if n != len(lines) - 1:
-                    raise ValueError(f"{self.path}: line {n + 1} is not JSON") from None
-        if text and (len(records) < len(lines) or not text.endswith("\n")):
+        records, lines, cut = read_records(self.path)
+        if cut or (lines and not self.path.read_text().endswith("\n")):
             # A kill mid-line: keep the whole records, each ended, so appends start afresh.
-            self._kept = lines[: len(records)]
-        for i, rec in enumerate(records):
-            if rec.get("episode") != i:
-                raise ValueError(f"{self.path}: line {i + 1} is not episode {i}")
+            self._kept = lines
         return merge_timings([record_from_json(rec) for rec in records], self.dir)
 
     def append(self, records: Sequence[dict]) -> None:
@@ -150,6 +153,35 @@ class EpisodeLog:
         strike between an append's write and its bookkeeping, the file is the truth."""
         self.records = self._read()
         return self.records
+
+
+def read_records(path: Path) -> tuple[list[dict], list[str], int]:
+    """The records of an ``episodes.jsonl`` as written (JSON values), their lines, and how
+    many cut lines were skipped (a kill mid-write cuts at most the last line).
+
+    Raises:
+        ValueError: a line that is not JSON before the last, a record without a field of
+            :data:`REQUIRED_FIELDS`, or episodes out of order (naming the file, the line
+            and the field).
+    """
+    lines = path.read_text().splitlines()
+    records: list[dict] = []
+    for n, line in enumerate(lines, start=1):
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            if n != len(lines):
+                raise ValueError(f"{path}: line {n} is not JSON") from None
+            return records, lines[: len(records)], 1
+        missing = [k for k in REQUIRED_FIELDS if k not in rec]
+        if missing:
+            raise ValueError(f"{path}: line {n} has no field {', '.join(map(repr, missing))}")
+        if rec["episode"] != len(records):
+            raise ValueError(
+                f"{path}: line {n} is episode {rec['episode']!r}, expected {len(records)}"
+            )
+        records.append(rec)
+    return records, lines, 0
 
 
 def split_timings(record: dict) -> tuple[dict, dict]:
