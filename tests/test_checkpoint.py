@@ -107,9 +107,21 @@ def test_save_overwrites_and_leaves_no_temporary_files(saved):
     assert loaded.preset is None
 
 
+def test_the_same_model_saves_to_the_same_bytes(tmp_path):
+    """Two runs of the same training write identical files (byte for byte)."""
+    model = _model(seed=1)
+    for name in ("a", "b"):
+        save_model(model, tmp_path / name, "default", {"steps": 3})
+    for name in (CONFIG, WEIGHTS):
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
+
+
 def test_missing_directory(tmp_path):
     with pytest.raises(CheckpointError, match="does not exist"):
         load_model(tmp_path / "nope")
+    (tmp_path / "model.safetensors").write_bytes(b"")
+    with pytest.raises(CheckpointError, match="is a file: a model is the directory"):
+        load_model(tmp_path / "model.safetensors")
 
 
 def test_missing_config(saved):

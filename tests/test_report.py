@@ -371,6 +371,8 @@ def test_bad_run_directories_are_refused_with_the_file_named(template, tmp_path,
     with pytest.raises(FileNotFoundError, match=r"episodes\.jsonl"):
         load_run(empty)
     run = write_run(tmp_path / "run", mixed(template))
+    with pytest.raises(FileNotFoundError, match=r"is a file: give the run's directory"):
+        load_run(run / "episodes.jsonl")
     lines = (run / "episodes.jsonl").read_text().splitlines()
     broken = json.loads(lines[1])
     del broken["min_ttc"]

@@ -68,6 +68,8 @@ def test_foreign_and_missing_files(tmp_path):
         load_scenes(tmp_path / "other.npz")
     with pytest.raises(ShardError, match="no such shard"):
         load_scenes(tmp_path / "missing.npz")
+    with pytest.raises(ShardError, match="a directory without a dataset manifest"):
+        load_scenes(tmp_path)  # a stress run's directory, say
     (tmp_path / "text.npz").write_text("hello")
     with pytest.raises(ShardError, match="truncated or corrupt"):
         load_scenes(tmp_path / "text.npz")

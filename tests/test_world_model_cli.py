@@ -111,6 +111,16 @@ def test_resume_extends_the_run_and_matches_an_uninterrupted_one(dataset, tmp_pa
     assert _train(dataset, fresh, 6) == 0
     assert len(_log(fresh)) == 3
     assert json.loads(capsys.readouterr().out) == json.loads(_log(fresh)[-1])
+    # A smaller --steps than the run holds is refused, as stress refuses fewer --episodes.
+    assert _train(dataset, fresh, 4) == 1
+    assert "holds a run at step 6, more than --steps 4" in capsys.readouterr().err
+    # A damaged state is named, and nothing is changed.
+    state = fresh / "last.pt"
+    state.write_bytes(state.read_bytes()[:100])
+    before = {p.name: p.read_bytes() for p in fresh.iterdir()}
+    assert _train(dataset, fresh, 8) == 1
+    assert f"{state} is not a readable training state" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in fresh.iterdir()} == before
 
 
 def test_parked_cars_change_the_run_and_resume_exactly(dataset, tmp_path, capsys):

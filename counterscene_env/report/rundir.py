@@ -69,6 +69,8 @@ def load_run(directory: str | os.PathLike) -> Run:
             (the message names the file, the line and the field).
     """
     root = Path(directory)
+    if root.is_file():
+        raise FileNotFoundError(f"{root} is a file: give the run's directory")
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: no such run directory")
     episodes = root / "episodes.jsonl"

@@ -105,6 +105,11 @@ def save_scenes(scenes: Sequence[Scene], path: str | os.PathLike) -> Path:
 def load_scenes(path: str | os.PathLike) -> list[Scene]:
     """Read every scene of a shard written by :func:`save_scenes`."""
     path = Path(path)
+    if path.is_dir():
+        raise ShardError(
+            f"{path}: a directory without a dataset manifest (make one with counterscene "
+            "generate; a shard is a .npz file)"
+        )
     if not path.is_file():
         raise ShardError(f"{path}: no such shard file")
     try:

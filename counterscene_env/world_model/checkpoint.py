@@ -63,7 +63,9 @@ def save_model(
         "training": dict(training or {}),
     }
     tmp_w, tmp_c = out / (WEIGHTS + ".tmp"), out / (CONFIG + ".tmp")
-    save_file(tensors, str(tmp_w), metadata={"format": FORMAT, "version": str(VERSION)})
+    # One metadata key: safetensors writes several in a random order, and two runs of the
+    # same training would then differ in their bytes. The version is in config.json.
+    save_file(tensors, str(tmp_w), metadata={"format": FORMAT})
     tmp_c.write_text(json.dumps(meta, indent=1) + "\n")
     # safetensors writes its file owner-only (0600); give it the mode every other file gets.
     os.chmod(tmp_w, os.stat(tmp_c).st_mode & 0o777)
@@ -75,6 +77,11 @@ def save_model(
 def read_config(directory: str | os.PathLike) -> dict[str, Any]:
     """The validated ``config.json`` of a checkpoint directory."""
     path = Path(directory)
+    if path.is_file():
+        raise CheckpointError(
+            f"{str(path)!r} is a file: a model is the directory that holds {WEIGHTS} and "
+            f"{CONFIG}"
+        )
     if not path.is_dir():
         raise CheckpointError(f"model directory {str(path)!r} does not exist")
     cfg_path = path / CONFIG

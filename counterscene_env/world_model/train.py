@@ -96,6 +96,20 @@ def validate(
     return {"val_ade": total / max(n, 1), "val_fde": fde / max(nf, 1)}
 
 
+def _read_state(path: Path, device: torch.device) -> dict[str, Any]:
+    """The resumable state of a run (plain containers only: ``weights_only``).
+
+    Raises:
+        ValueError: naming the file, when it is not a readable state (cut short, foreign)."""
+    try:
+        return torch.load(path, weights_only=True, map_location=device)
+    except Exception as exc:  # torch raises several kinds for a damaged or foreign file
+        raise ValueError(
+            f"{path} is not a readable training state ({type(exc).__name__}: {exc}); delete "
+            "it to start the run over"
+        ) from None
+
+
 def torch_device(name: str) -> torch.device:
     """``--device``: a torch device this machine has.
 
@@ -160,11 +174,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     )
 
     state_path = out / STATE_FILE
-    state = (
-        torch.load(state_path, weights_only=True, map_location=device)
-        if state_path.is_file()
-        else None
-    )
+    state = _read_state(state_path, device) if state_path.is_file() else None
     if state is not None:
         old, new = state["config"], plain_settings(cfg)
         changed = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
@@ -172,6 +182,11 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             raise ValueError(
                 f"{state_path} belongs to a run with different settings ({', '.join(changed)}); "
                 "use a new --out directory or delete it to start over"
+            )
+        if int(state["step"]) > cfg.steps:  # its record and weights are past --steps
+            raise ValueError(
+                f"{out} holds a run at step {state['step']}, more than --steps {cfg.steps}: "
+                f"rerun with --steps {state['step']} or more, or use another --out"
             )
         normalization = Normalization(
             *(tuple(state["normalization"][k]) for k in ("action_mean", "action_std"))
