@@ -79,8 +79,7 @@ def read_config(directory: str | os.PathLike) -> dict[str, Any]:
     path = Path(directory)
     if path.is_file():
         raise CheckpointError(
-            f"{str(path)!r} is a file: a model is the directory that holds {WEIGHTS} and "
-            f"{CONFIG}"
+            f"{str(path)!r} is a file: a model is the directory that holds {WEIGHTS} and {CONFIG}"
         )
     if not path.is_dir():
         raise CheckpointError(f"model directory {str(path)!r} does not exist")
