@@ -253,6 +253,48 @@ def test_sb3_runs_are_reported_without_videos(template, tmp_path):
     assert "not re-simulated for videos" in md
 
 
+class _Brake:
+    """A planner given from Python: always brakes hard."""
+
+    name = "brake"
+    replays_log = False
+
+    def reset(self, scene, seed):
+        pass
+
+    def act(self, state):
+        return np.array([-5.0, 0.0])
+
+
+def test_a_python_planners_run_is_reported_as_its_own_not_the_configs(generated, tmp_path):
+    """``run_episodes(planner_factory=...)`` with a log: the records name the planner, and
+    the report shows it (not the config's ``idm``), makes no IDM videos of it and says that
+    no command reruns it. A planner whose action is not two numbers is refused by name."""
+    from counterscene_env.scene.shards import save_scenes
+    from counterscene_env.stress import run_episodes
+    from counterscene_env.world_model import load_model
+
+    shard = save_scenes([generated["merge"]], tmp_path / "s.npz")
+    config = StressConfig(str(shard), episodes=1, sim=SimConfig(duration=0.5, num_samples=2))
+    log = EpisodeLog(
+        tmp_path / "run", run_identity(config, "default"), summarize=lambda r: summarize(r, config)
+    )
+    model = load_model()
+    run_episodes(model, config, planner_factory=_Brake, log=log, progress=False)
+    md = write_report(tmp_path / "run", videos=1, progress=False).with_name("report.md")
+    text = md.read_text()
+    assert "ego planner: python:brake" in text and "given from Python" in text
+    assert not (tmp_path / "run" / "videos").exists()
+    assert "planner_factory" in (tmp_path / "run" / "command.txt").read_text()
+
+    class Scalar(_Brake):
+        def act(self, state):
+            return -5.0  # would be read as -5 rad of steering too
+
+    with pytest.raises(ValueError, match=r"planner 'brake': act\(\) must return .* shape \(2,\)"):
+        run_episodes(model, config, planner_factory=Scalar, progress=False)
+
+
 # ---------------------------------------------------------------------- compare
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 from counterscene_env.report.rundir import Run
 from counterscene_env.sim.config import SimConfig
 from counterscene_env.stress import SB3_PREFIX
+from counterscene_env.stress.log import PYTHON_PLANNER_PREFIX
 
 
 def stress_argv(run: Run) -> list[str]:
@@ -60,6 +61,11 @@ def command_text(run: Run) -> str:
         "# Rerun of this stress run (rebuilt from run.json). As is, it finishes the run in",
         "# this directory (--resume); change --out to reproduce it from scratch.",
     ]
+    if str(run.identity.get("planner", "")).startswith(PYTHON_PLANNER_PREFIX):
+        lines.append(
+            "# Its planner was given from Python (planner_factory): no --planner rebuilds it. "
+            "Rerun it from your script; the line below names it for the record only."
+        )
     if str(run.identity.get("planner", "")).startswith(SB3_PREFIX):
         lines.append(
             "# sb3 planner: the policy's PATH.env.json sidecar, if any, is read again; "

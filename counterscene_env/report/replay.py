@@ -28,6 +28,7 @@ from counterscene_env.scene.sources import scenes_for
 from counterscene_env.sim import ClosedLoop, SimConfig
 from counterscene_env.stress import SB3_PREFIX
 from counterscene_env.stress.batch import play_batch
+from counterscene_env.stress.log import PYTHON_PLANNER_PREFIX
 from counterscene_env.stress.rollouts import rollout_seed
 from counterscene_env.world_model.model import WorldModel
 
@@ -81,6 +82,11 @@ class Replay:
 def can_replay(run: Run) -> str | None:
     """Why the run's episodes cannot be replayed here (None: they can)."""
     planner = str(run.identity.get("planner", ""))
+    if planner.startswith(PYTHON_PLANNER_PREFIX):
+        return (
+            f"planner {planner[len(PYTHON_PLANNER_PREFIX) :]!r} was given from Python, and no "
+            "command can rebuild it to re-simulate its episodes"
+        )
     if planner.startswith(SB3_PREFIX):
         return (
             f"planner {planner} runs through CounterScene-v0 and its episodes are not "

@@ -12,7 +12,13 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from counterscene_env.stress.log import merge_timings, read_records, record_from_json
+from counterscene_env.stress.log import (
+    PYTHON_PLANNER_KEY,
+    PYTHON_PLANNER_PREFIX,
+    merge_timings,
+    read_records,
+    record_from_json,
+)
 
 
 @dataclass(frozen=True)
@@ -88,6 +94,8 @@ def load_run(directory: str | os.PathLike) -> Run:
             )
         identity = {k: v for k, v in summary["config"].items() if k != "episodes"}
     records, cut = _read_records(episodes)
+    if PYTHON_PLANNER_KEY in records[0]:  # run.json names the config's planner, not this one
+        identity = {**identity, "planner": PYTHON_PLANNER_PREFIX + records[0][PYTHON_PLANNER_KEY]}
     return Run(root, identity, summary, _read_json(root / "timings.json"), records, cut)
 
 

@@ -64,11 +64,23 @@ def play_batch(
             if planner.replays_log:
                 states[b] = planner.next_state(state)
             else:
-                actions[b] = planner.act(state)
+                actions[b] = _checked_action(planner, planner.act(state))
         with one_thread_if(recording()):  # a scene recorded in the background holds a core
             loop.step(actions, states)
         if after is not None:
             after(stepped)
+
+
+def _checked_action(planner: Planner, action: object) -> np.ndarray:
+    """A planner's action as ``[2]`` floats: a scalar or another shape would be broadcast
+    into both controls (an acceleration read as a steering angle too), so it is refused."""
+    a = np.asarray(action, dtype=float) if action is not None else np.empty(0)
+    if a.shape != (2,):
+        raise ValueError(
+            f"planner {getattr(planner, 'name', planner)!r}: act() must return "
+            f"[acceleration m/s^2, steering rad] of shape (2,), got {action!r}"
+        )
+    return a
 
 
 def record(loop: ClosedLoop, b: int, scene: Scene, seed: int, seconds: float, index: int) -> dict:

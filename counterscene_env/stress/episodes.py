@@ -23,7 +23,7 @@ from counterscene_env.scene.sources import is_generated, scenes_for
 from counterscene_env.sim import ClosedLoop
 from counterscene_env.stress.batch import record, run_batch
 from counterscene_env.stress.config import StressConfig
-from counterscene_env.stress.log import EpisodeLog
+from counterscene_env.stress.log import PYTHON_PLANNER_KEY, EpisodeLog
 from counterscene_env.stress.rollouts import keep_most_severe, rollout_seed
 from counterscene_env.world_model.checkpoint import load_model
 from counterscene_env.world_model.model import WorldModel
@@ -136,12 +136,17 @@ class BatchRunner:
     ) -> None:
         self.config = config
         self.factory = planner_factory or (lambda: make_planner(config.planner))
+        self.custom = planner_factory is not None
         self.loop = ClosedLoop(model, config.sim)
 
     def __call__(self, first: int, scenes: Sequence[Scene]) -> list[dict]:
         def run(seeds: list[int], selection_seeds: list[int]) -> list[dict]:
             planners = [self.factory() for _ in scenes]
-            return run_batch(self.loop, scenes, seeds, planners, first, selection_seeds)
+            records = run_batch(self.loop, scenes, seeds, planners, first, selection_seeds)
+            if self.custom:  # not config.planner: the record says which planner drove
+                for rec, planner in zip(records, planners, strict=True):
+                    rec[PYTHON_PLANNER_KEY] = str(getattr(planner, "name", type(planner).__name__))
+            return records
 
         return candidate_rollouts(run, self.config, first, len(scenes))
 

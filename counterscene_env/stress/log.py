@@ -23,6 +23,11 @@ from counterscene_env import metrics
 TIMING_KEYS = ("seconds", "replan_seconds")
 #: The per-episode timings' file, beside ``episodes.jsonl``.
 TIMINGS_FILE = "episode_timings.jsonl"
+#: Record key naming a planner given from Python (``planner_factory``), which no
+#: ``--planner`` value names: a report then names it and makes no videos.
+PYTHON_PLANNER_KEY = "python_planner"
+#: The ``planner`` a run's report shows for such a planner (``python:NAME``).
+PYTHON_PLANNER_PREFIX = "python:"
 #: Record fields every summary, report and comparison reads; a record without one is
 #: refused when the file is read (before a resumed run adds to it).
 REQUIRED_FIELDS = (
