@@ -44,7 +44,10 @@ class WorldState:
         positions: ``[N, 2]`` m; yaws ``[N]`` rad; speeds ``[N]`` m/s; valid ``[N]`` bool.
         extents: ``[N, 2]`` m (length, width).
         ego_index: the ego's row.
-        scene: the factual scene (road, ids, log).
+        scene: the factual scene (road, ids, log), shared with the loop, not copied (a copy
+            per step would cost more than the step): read it, do not change it.
+
+    The arrays are copies: a planner may change them without touching the episode.
     """
 
     t: int
@@ -158,7 +161,8 @@ class Episode:
         return self.t >= self.end
 
     def state(self) -> WorldState:
-        """What the episode looks like at its current step (copies)."""
+        """What the episode looks like at its current step (its arrays copies; the factual
+        scene shared)."""
         t = self.t
         return WorldState(
             t=t,
@@ -166,7 +170,7 @@ class Episode:
             yaws=self.yaws[:, t].copy(),
             speeds=self.speeds[:, t].copy(),
             valid=self.valid[:, t].copy(),
-            extents=self.factual.extents,
+            extents=self.factual.extents.copy(),
             ego_index=self.factual.ego_index,
             scene=self.factual,
         )
