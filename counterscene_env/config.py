@@ -268,8 +268,9 @@ def bounded(default: Any, **bounds: float) -> Any:
 
 def check_fields(obj: Any) -> None:
     """Check every field of dataclass ``obj`` by its annotation (``bool``, ``int``, ``float``,
-    a :class:`Choice`, each optionally ``| None``) and its :func:`bounded` range; choices are
-    stored as their plain strings.
+    a :class:`Choice`, each optionally ``| None``) and its :func:`bounded` range; each value
+    is stored as its plain Python type (a numpy int as an int, a choice as its string), so
+    configs stay plain JSON.
 
     Raises:
         TypeError: a value of the wrong type; ValueError: one out of range or not a choice.
@@ -284,11 +285,11 @@ def check_fields(obj: Any) -> None:
         if f.metadata.get("choices") is not None:
             object.__setattr__(obj, f.name, f.metadata["choices"].parse(value, f.name))
         elif kind is bool:
-            check_bool(f.name, value)
+            object.__setattr__(obj, f.name, check_bool(f.name, value))
         elif kind is int:
-            check_int(f.name, value, **bounds)
+            object.__setattr__(obj, f.name, check_int(f.name, value, **bounds))
         elif kind is float:
-            check_real(f.name, value, **bounds)
+            object.__setattr__(obj, f.name, check_real(f.name, value, **bounds))
 
 
 _HINTS: dict[type, dict[str, Any]] = {}

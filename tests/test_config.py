@@ -142,3 +142,34 @@ def test_a_stress_runs_episode_seeds_must_fit_the_torch_generator():
         StressConfig("merge", episodes=3, seed=MAX_SEED - 1)
     with pytest.raises(TypeError, match="seed must be an int"):
         StressConfig("merge", seed=1.5)
+
+
+@pytest.mark.parametrize(
+    ("values", "error", "words"),
+    [
+        ({"episodes": 1.5}, TypeError, "episodes must be an int"),
+        ({"episodes": True}, TypeError, "episodes must be an int"),
+        ({"batch": 0}, ValueError, "batch must be >= 1"),
+        ({"rollouts": 2.0}, TypeError, "rollouts must be an int"),
+        ({"min_future": "1"}, TypeError, "min_future must be a number"),
+        ({"sim": {"duration": 1.0}}, TypeError, "sim must be a SimConfig"),
+        ({"planner": None}, TypeError, "planner must be a str"),
+        ({"scenario": None}, TypeError, "scenario must be a str"),
+    ],
+)
+def test_a_stress_config_checks_its_fields_by_type_and_range(values, error, words):
+    from counterscene_env.stress import StressConfig
+
+    with pytest.raises(error, match=words):
+        StressConfig(**{"scenario": "merge", **values})
+
+
+def test_numpy_values_are_stored_as_plain_python_ones():
+    """A count given as a numpy int (an index, a sweep) is stored as an int: the run's
+    summary and records stay plain JSON."""
+    from counterscene_env.stress import StressConfig
+
+    config = StressConfig("merge", episodes=np.int64(3), seed=np.int64(5))
+    assert type(config.episodes) is int and type(config.seed) is int
+    sim = SimConfig(replan_every=np.int64(2), duration=np.float32(2.0))
+    assert type(sim.replan_every) is int and type(sim.duration) is float

@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from counterscene_env.config import MAX_SEED, check_seed
+from counterscene_env.config import (
+    MAX_SEED,
+    bounded,
+    check_fields,
+    check_seed,
+    describe_value,
+)
 from counterscene_env.planners import make_planner
 from counterscene_env.scene.sources import check_spec, is_generated
 from counterscene_env.sim import SimConfig
@@ -43,32 +48,28 @@ class StressConfig:
     """
 
     scenario: str
-    episodes: int = 50
+    episodes: int = bounded(50, ge=1)
     seed: int = 0
     planner: str = "idm"
     sim: SimConfig = dataclasses.field(default_factory=SimConfig)
-    batch: int = 4
-    egos: int = 1
-    min_future: float = 0.0
-    rollouts: int = 1
+    batch: int = bounded(4, ge=1)
+    egos: int = bounded(1, ge=1)
+    min_future: float = bounded(0.0, ge=0)
+    rollouts: int = bounded(1, ge=1)
 
     def __post_init__(self) -> None:
-        if self.episodes < 1:
-            raise ValueError(f"episodes must be >= 1, got {self.episodes}")
-        if self.batch < 1:
-            raise ValueError(f"batch must be >= 1, got {self.batch}")
-        if self.egos < 1:
-            raise ValueError(f"egos must be >= 1, got {self.egos}")
-        if self.rollouts < 1:
-            raise ValueError(f"rollouts must be >= 1, got {self.rollouts}")
-        check_seed("seed", self.seed)
+        for key in ("scenario", "planner"):
+            if not isinstance(getattr(self, key), str):
+                raise TypeError(f"{key} must be a str, {describe_value(getattr(self, key))}")
+        if not isinstance(self.sim, SimConfig):
+            raise TypeError(f"sim must be a SimConfig, {describe_value(self.sim)}")
+        check_fields(self)  # counts, min_future: types and ranges, stored as plain values
+        object.__setattr__(self, "seed", check_seed("seed", self.seed))
         if self.seed + self.episodes - 1 > MAX_SEED:  # the last episode's closed-loop seed
             raise ValueError(
                 f"seed {self.seed} with {self.episodes} episodes: episode i's seed is seed + i, "
                 f"and seeds must be <= {MAX_SEED} (torch's 64 bits)"
             )
-        if not (math.isfinite(self.min_future) and self.min_future >= 0):
-            raise ValueError(f"min_future must be a finite number of s >= 0, got {self.min_future}")
         check_spec(self.scenario)
         if is_generated(self.scenario):
             object.__setattr__(self, "egos", 1)  # a new scene every episode: no ego choices
