@@ -354,6 +354,17 @@ def test_ade_nan_without_agents_or_factual_and_missing_ids_raise(road):
 
 
 # ---------------------------------------------------------------------- records and aggregate
+def test_a_scene_with_no_rollout_has_no_collision_rate_rather_than_zero(road):
+    """"now" at the log's last step: no step to count a collision in, so the rates are NaN
+    (docs/metrics.md: nothing to measure is NaN, never 0)."""
+    scene = crash_scene(road, steps=HIST)
+    res = metrics.evaluate_scene(scene, adversary="obstacle")
+    assert res["rollout_s"] == 0.0
+    for key in ("cr", "cr_all_agents", "cr_non_ego", "cr_ego_adversary"):
+        assert math.isnan(res[key]), key
+    assert math.isnan(res["per_second"]["1"]["CR"]) and math.isnan(res["per_second"]["1"]["CR_adv"])
+
+
 def test_evaluate_scene_record_is_json_and_complete(road):
     sim, factual = ade_pair(road)
     res = metrics.evaluate_scene(sim, factual, adversary="c1")

@@ -34,6 +34,18 @@ def test_validation_names_the_bad_field():
         make_scene(np.zeros((2, 5, 2)), agent_types=np.array(["vehicle", "tank"]))
     with pytest.raises(SceneError, match="ego must be a vehicle"):
         make_scene(np.zeros((2, 5, 2)), agent_types=np.array(["pedestrian", "vehicle"]))
+    # Values that would be silently converted: a row of 1.7, a dt of "0.1", a validity of 0.5.
+    with pytest.raises(SceneError, match="ego_index must be an int"):
+        make_scene(np.zeros((2, 5, 2)), ego_index=1.7)
+    with pytest.raises(SceneError, match="current_index must be an int"):
+        make_scene(np.zeros((2, 5, 2)), current_index=2.5)
+    for dt in ("0.1", float("inf"), 0.0):
+        with pytest.raises(SceneError, match="dt must be"):
+            make_scene(np.zeros((2, 5, 2)), current_index=2, dt=dt)
+    with pytest.raises(SceneError, match="valid must be bools"):
+        make_scene(np.zeros((2, 5, 2)), valid=np.full((2, 5), 0.5))
+    with pytest.raises(SceneError, match="speeds must be numbers"):
+        make_scene(np.zeros((2, 5, 2)), speeds=np.full((2, 5), "fast"))
 
 
 def test_scene_owns_its_arrays():

@@ -156,13 +156,15 @@ def evaluate_scene(
             if off_log is None
             else off_road_rate_of(sim, off_log, h, True, valid=ok_log),
             "HBR": float(flags[e][brake_in].any()) if brake_in.any() else math.nan,
-            "CR": float(ego_hits[steps < n].any()),
-            "CR_adv": math.nan if adv_hits is None else float(adv_hits[steps < n].any()),
+            "CR": float(ego_hits[steps < n].any()) if steps.size else math.nan,
+            "CR_adv": math.nan
+            if adv_hits is None or not steps.size
+            else float(adv_hits[steps < n].any()),
             # Any braking threshold's HBR within h: DEC > threshold (paper tables).
             "DEC": max(0.0, -float(acc[e][brake_in].min())) if brake_in.any() else math.nan,
         }
 
-    return {
+    out = {
         "scenario_id": str(sim.scenario_id),
         "rollout_s": float(rollout_steps(sim) * sim.dt),
         "adversary_id": _latest_adversary(sim, adversary),
@@ -185,6 +187,13 @@ def evaluate_scene(
         "min_clearance_adversary": clearance,
         "ego_peak_deceleration": peak_decel,
     }
+    if rollout_steps(sim) == 0:  # "now" is the log's last step: no collision to count, or not
+        out.update({k: math.nan for k in _RATES_OF_STEPS})
+    return out
+
+
+#: The whole-rollout rates that count steps with an event: NaN over no step (never 0).
+_RATES_OF_STEPS = ("cr", "cr_all_agents", "cr_non_ego", "cr_non_ego_new", "cr_ego_adversary")
 
 
 def severity(record: dict) -> tuple[float, ...]:

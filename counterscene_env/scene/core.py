@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from counterscene_env.config import DEFAULT_DT
+from counterscene_env.config import DEFAULT_DT, check_int, check_real
 from counterscene_env.scene.road import RoadMap
 
 #: Agent type labels. Vehicles are the agents the world model drives; the other types are kept
@@ -39,6 +39,14 @@ GENERATED_SOURCE = "highway-env"
 
 class SceneError(ValueError):
     """A scene (in memory or on disk) breaks the contract; the message names the field."""
+
+
+def _array(name: str, value: object, dtype: type) -> np.ndarray:
+    """``value`` as a new array of ``dtype``; a value that is not numbers names the field."""
+    try:
+        return np.array(value, dtype=dtype)
+    except (TypeError, ValueError) as exc:
+        raise SceneError(f"{name} must be numbers: {exc}") from None
 
 
 class SceneTooShort(SceneError):
@@ -82,17 +90,21 @@ class Scene:
 
     def __post_init__(self) -> None:
         # Own copies: the scene zeroes invalid entries and must not alias the caller's arrays.
-        self.positions = np.array(self.positions, dtype=np.float64)
-        self.yaws = np.array(self.yaws, dtype=np.float64)
-        self.speeds = np.array(self.speeds, dtype=np.float64)
-        self.extents = np.array(self.extents, dtype=np.float64)
-        self.valid = np.array(self.valid, dtype=bool)
+        for name in ("positions", "yaws", "speeds", "extents"):
+            setattr(self, name, _array(name, getattr(self, name), np.float64))
+        valid = np.asarray(self.valid)
+        if valid.dtype != bool and not np.isin(valid, (0, 1)).all():
+            raise SceneError(f"valid must be bools (or 0 and 1), got values {np.unique(valid)[:5]}")
+        self.valid = np.array(valid, dtype=bool)
         self.agent_types = np.array(self.agent_types, dtype=str)
         self.agent_ids = np.array(self.agent_ids, dtype=str)
-        self.ego_index = int(self.ego_index)
-        self.current_index = int(self.current_index)
-        self.dt = float(self.dt)
-        self.metadata = dict(self.metadata)  # a slice's metadata must not write back
+        try:  # a row and a step are ints (1.7 is not a row); dt a finite number of s
+            self.ego_index = check_int("ego_index", self.ego_index)
+            self.current_index = check_int("current_index", self.current_index)
+            self.dt = check_real("dt", self.dt, gt=0)
+        except (TypeError, ValueError) as exc:
+            raise SceneError(str(exc)) from None
+        self.metadata = dict(self.metadata)  # a slice's own top-level metadata
         self._validate()
         # Invalid entries carry no meaning; zero them so that NaNs from a source never leak.
         inv = ~self.valid

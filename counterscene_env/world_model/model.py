@@ -248,7 +248,8 @@ class WorldModel(nn.Module):
             num_samples: S samples per scene, drawn together as a batch of ``B * S``.
             generator: the only source of randomness (initial noise and every step's noise);
                 a sequence of B generators gives each scene its own, so a scene's samples do
-                not depend on which other scenes share the batch.
+                not depend on which other scenes share the batch. None draws from torch's
+                global generator (``torch.manual_seed``), as torch's own samplers do.
             sampler: ``"ddim"`` (strided, ``steps`` steps) or ``"ddpm"`` (all K steps); default
                 from the config.
             steps: strided sampler steps; default from the config.
