@@ -50,6 +50,15 @@ def test_vehicles_appear_and_leave_with_validity(generated):
         assert not scene.valid[i, :first].any()
 
 
+def test_a_seed_that_is_not_a_natural_number_is_refused_by_name():
+    from counterscene_env.scene.highway import generate
+
+    with pytest.raises(TypeError, match="seed must be an int"):
+        generate("merge", 1.5)  # it recorded seed 1 and named the scene "merge/seed=1.5"
+    with pytest.raises(ValueError, match="seed must be >= 0"):
+        generate("merge", -1)
+
+
 def test_unsafe_seed_is_rejected_and_the_next_seed_used():
     # Intersection seed 0 has two cars overlapping (highway-env's own IDM crash).
     with pytest.raises(RejectedScene, match="overlap"):

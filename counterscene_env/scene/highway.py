@@ -38,7 +38,7 @@ import highway_env
 import numpy as np
 import shapely
 
-from counterscene_env.config import Scenario, Yielding
+from counterscene_env.config import Scenario, Yielding, check_int
 from counterscene_env.geometry import overlaps_over_time, wrap_angle
 from counterscene_env.scene.core import DEFAULT_DT, GENERATED_SOURCE, Scene
 from counterscene_env.scene.highway_traffic import VEHICLE_CLASSES, Traffic, make_env
@@ -126,6 +126,7 @@ def generate(
         The scene; ``scene.metadata["seed"]`` is the seed actually used and
         ``scene.metadata["rejected_seeds"]`` the ones skipped before it.
     """
+    seed = check_int("seed", seed, ge=0)  # 1.5 would record seed 1, named "1.5"
     cfg = config or GeneratorConfig()
     if duration is not None:
         cfg = dataclasses.replace(cfg, duration=duration)
