@@ -346,6 +346,32 @@ def test_not_a_pickle(tmp_path):
         load_scenarionet(path)
 
 
+def test_scenarionets_index_files_are_read_as_its_readers_read_them(tmp_path):
+    """ScenarioNet writes ``dataset_summary.pkl`` and ``dataset_mapping.pkl`` into every
+    dataset directory: they are not scenarios. A merged dataset holds only them, and its
+    mapping points at the scenarios in the datasets it merged."""
+    from counterscene_env.scene.reading import iter_scenes
+    from counterscene_env.scene.scenarionet import scenarionet_files
+
+    data = tmp_path / "data"
+    data.mkdir()
+    _write(data, _scenario(), "sd_a.pkl")
+    _write(data, _scenario(), "sd_b.pkl")
+    _write(data, {"sd_a.pkl": {"id": "a"}, "sd_b.pkl": {"id": "b"}}, "dataset_summary.pkl")
+    _write(data, {"sd_a.pkl": "", "sd_b.pkl": ""}, "dataset_mapping.pkl")
+    assert [f.name for f in scenarionet_files(data)] == ["sd_a.pkl", "sd_b.pkl"]
+    assert len(list(iter_scenes(data))) == 2
+    (data / "dataset_mapping.pkl").unlink()  # no mapping: every .pkl but the index files
+    assert [f.name for f in scenarionet_files(data)] == ["sd_a.pkl", "sd_b.pkl"]
+    merged = tmp_path / "merged"
+    merged.mkdir()
+    _write(merged, {"sd_b.pkl": "../data"}, "dataset_mapping.pkl")
+    assert scenarionet_files(merged) == [merged / "../data" / "sd_b.pkl"]
+    _write(merged, {"sd_c.pkl": "../data"}, "dataset_mapping.pkl")
+    with pytest.raises(FileNotFoundError, match="not there"):
+        scenarionet_files(merged)
+
+
 def test_missing_file(tmp_path):
     with pytest.raises(ScenarioNetError, match="cannot read"):
         load_scenarionet(tmp_path / "absent.pkl")

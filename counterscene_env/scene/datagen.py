@@ -91,9 +91,9 @@ def convert_scenarionet(
     progress: bool = True,
 ) -> dict:
     """Convert every ScenarioNet ``.pkl`` under ``src`` into shards in ``out``; returns the manifest."""
-    files = sorted(str(p) for p in Path(src).rglob("*.pkl"))
-    if not files:
-        raise FileNotFoundError(f"{src}: no ScenarioNet .pkl files found")
+    from counterscene_env.scene.scenarionet import scenarionet_files
+
+    files = [str(p) for p in scenarionet_files(src)]
     params = {"source": "scenarionet"}
     return _convert_files(
         src, out, files, params, (convert_scenarionet_block,), shard_size, workers, progress

@@ -28,10 +28,12 @@ def iter_scenes(
     then skipped; without it such a log raises :class:`SceneTooShort`.
     """
     path = Path(path)
+    from counterscene_env.scene.scenarionet import load_scenarionet, scenarionet_files
+
     if path.is_dir() and not (path / MANIFEST).is_file():
-        files = sorted(path.rglob("*.pkl"))
-        if not files:
+        if not any(path.rglob("*.pkl")):
             raise FileNotFoundError(f"{path}: no dataset manifest and no .pkl files")
+        files = scenarionet_files(path)
     elif path.suffix == ".pkl":
         files = [path]
     elif path.is_file() and path.suffix != ".npz":
@@ -44,7 +46,6 @@ def iter_scenes(
     else:
         yield from _iter_stored(path)
         return
-    from counterscene_env.scene.scenarionet import load_scenarionet
 
     for f in files:
         start = time.perf_counter()

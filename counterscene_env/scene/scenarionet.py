@@ -90,6 +90,52 @@ def read_scenario_description(path: str | os.PathLike) -> dict:
     return data
 
 
+#: The index files ScenarioNet writes into every dataset directory beside the scenarios.
+INDEX_FILES = ("dataset_summary.pkl", "dataset_mapping.pkl")
+
+
+def scenarionet_files(path: str | os.PathLike) -> list[Path]:
+    """The scenario files of a ScenarioNet ``.pkl`` file or dataset directory.
+
+    A directory's ``dataset_mapping.pkl`` (scenario file name -> its directory, relative to
+    the dataset) lists them, as ScenarioNet's readers use it: a merged dataset holds only
+    the index files and points into the datasets it merged. Without one, every ``*.pkl``
+    under the directory (sorted, recursively) but the index files.
+
+    Raises:
+        FileNotFoundError: no scenario file, or one the mapping lists is missing.
+        ScenarioNetError: the mapping is not a dict of file names to directories.
+    """
+    path = Path(path)
+    if not path.is_dir():
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such ScenarioNet file or directory")
+        return [path]
+    mapping_file = path / "dataset_mapping.pkl"
+    if mapping_file.is_file():
+        try:
+            with mapping_file.open("rb") as f:
+                mapping = safe_load(f)
+        except Exception as exc:
+            raise ScenarioNetError(f"{mapping_file}: not a readable mapping ({exc})") from None
+        if not isinstance(mapping, dict) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in mapping.items()
+        ):
+            raise ScenarioNetError(f"{mapping_file}: not a dict of file names to directories")
+        files = sorted(path / rel / name for name, rel in mapping.items())
+        missing = [f for f in files if not f.is_file()]
+        if missing:
+            raise FileNotFoundError(
+                f"{mapping_file} lists {len(missing)} file(s) that are not there, e.g. "
+                f"{missing[0]}"
+            )
+    else:
+        files = sorted(f for f in path.rglob("*.pkl") if f.name not in INDEX_FILES)
+    if not files:
+        raise FileNotFoundError(f"{path}: no ScenarioNet .pkl files")
+    return files
+
+
 def load_scenarionet(path: str | os.PathLike, current_index: int | None = None) -> Scene:
     """Load a ScenarioNet scenario pickle as a 10 Hz :class:`Scene`.
 
