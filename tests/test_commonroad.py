@@ -222,7 +222,7 @@ def test_commonroad_spec_and_generate(tmp_path):
     (src / "short.xml").write_text(_scenario(steps=11, name="DEU_Short-1_1_T-1"))
     spec = f"commonroad:{src}"
     assert [s.scenario_id for s in stored_scenes(spec)] == ["DEU_Toy-1_1_T-1/ego=10"]
-    assert SKIPPED[spec] == 1
+    assert SKIPPED[spec] == {"too short for an episode": 1}
     drawn = SceneSource(spec).draw(np.random.default_rng(0))
     assert drawn.metadata["dataset"] == "commonroad"
     out = tmp_path / "ds"

@@ -11,6 +11,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from conftest import crash_scene
+from highway_env.road.road import RoadNetwork
 
 import counterscene_env
 from counterscene_env.envs.single_agent import CounterSceneEnv
@@ -549,6 +550,24 @@ def test_multi_ego_gym_env_refuses_steps_after_termination():
     assert terminated
     with pytest.raises(RuntimeError, match="reset"):
         env.unwrapped.step((ZERO, ZERO))
+    env.close()
+
+
+def test_a_scene_that_cannot_be_played_is_refused_with_the_reason(generated):
+    """A reset's own scene without a lane, or with no step after "now", is named with why;
+    the env is left as it was (it used to fail inside highway-env's lane search)."""
+    from counterscene_env.scene.road import RoadMap
+
+    env = gym.make("CounterScene-merge-v0", config=SHORT)
+    first, _ = env.reset(seed=0)
+    scene = generated["merge"]
+    bare = scene.replace(road=RoadMap.from_network(RoadNetwork()))
+    with pytest.raises(ValueError, match="cannot be played: its map has no lanes"):
+        env.reset(seed=0, options={"scene": bare})
+    with pytest.raises(ValueError, match="cannot be played: too short for an episode"):
+        env.reset(seed=0, options={"scene": scene.replace(current_index=scene.num_steps - 1)})
+    again, _ = env.reset(seed=0)
+    np.testing.assert_array_equal(first, again)
     env.close()
 
 

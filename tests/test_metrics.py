@@ -355,7 +355,7 @@ def test_ade_nan_without_agents_or_factual_and_missing_ids_raise(road):
 
 # ---------------------------------------------------------------------- records and aggregate
 def test_a_scene_with_no_rollout_has_no_collision_rate_rather_than_zero(road):
-    """"now" at the log's last step: no step to count a collision in, so the rates are NaN
+    """ "now" at the log's last step: no step to count a collision in, so the rates are NaN
     (docs/metrics.md: nothing to measure is NaN, never 0)."""
     scene = crash_scene(road, steps=HIST)
     res = metrics.evaluate_scene(scene, adversary="obstacle")

@@ -17,6 +17,7 @@ import pytest
 import shapely
 
 from counterscene_env.scene import Scene, SceneError
+from counterscene_env.scene.core import NO_LANES, TOO_SHORT
 from counterscene_env.scene.scenarionet import (
     DEFAULT_BOX,
     ScenarioNetError,
@@ -606,7 +607,19 @@ def test_short_logs_start_later_or_are_skipped_and_counted(tmp_path):
         load_scenarionet(tmp_path / "tiny.pkl")
     spec = f"scenarionet:{tmp_path}"
     assert [s.metadata["source_file"] for s in stored_scenes(spec)] == ["short.pkl"]
-    assert SKIPPED[spec] == 1
+    assert SKIPPED[spec] == {TOO_SHORT: 1}
+
+
+def test_a_scene_without_lanes_is_skipped_with_its_reason(tmp_path):
+    """Its ego has no lane to follow: stress and the env skip it and say why, rather than
+    failing inside highway-env's lane search."""
+    from counterscene_env.scene.sources import SKIPPED, stored_scenes
+
+    _write(tmp_path, _scenario(), "good.pkl")
+    _write(tmp_path, {**_scenario(), "map_features": {}}, "nomap.pkl")
+    spec = f"scenarionet:{tmp_path}"
+    assert [s.metadata["source_file"] for s in stored_scenes(spec)] == ["good.pkl"]
+    assert SKIPPED[spec] == {NO_LANES: 1}
 
 
 def test_a_zero_velocity_ending_a_moving_track_is_filled(tmp_path):

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from collections import Counter
+
 from counterscene_env.cli.common import fmt
 from counterscene_env.report.document import count
+from counterscene_env.scene.sources import skip_text
 
 
 def print_stress(config, summary: dict, times: dict, scenario: str, workers: int) -> None:
@@ -52,8 +55,8 @@ def print_stress(config, summary: dict, times: dict, scenario: str, workers: int
     if summary["episodes_cut_at_log_end"]:
         cut = count(summary["episodes_cut_at_log_end"], "episode")
         print(f"{cut} ended with their log (short logs)")
-    if summary["scenes_too_short"]:
-        print(f"{summary['scenes_too_short']} logs too short for an episode were skipped")
+    if summary["scenes_skipped"]:
+        print(f"stored scenes not played: {skip_text(Counter(summary['scenes_skipped']))}")
     print(
         f"{fmt(times['seconds_per_episode'])} s per episode, "
         f"{fmt(times['seconds_per_replan'])} s per replan"

@@ -22,7 +22,7 @@ from counterscene_env.config import (
 )
 from counterscene_env.envs.egos import pick_egos
 from counterscene_env.envs.type_checks import check_pair, check_types
-from counterscene_env.scene.core import Scene
+from counterscene_env.scene.core import Scene, unplayable_reason
 from counterscene_env.scene.sources import SceneSource
 from counterscene_env.sim.config import SimConfig
 from counterscene_env.sim.memory import check_replan_memory
@@ -192,7 +192,8 @@ def check_episode_inputs(
     """Raise unless a reset's own inputs are sound: a seed (None or an int >= 0), an episode
     seed and a selection seed (each None or an int in [0, ``config.MAX_SEED``]: they seed
     the episode's torch generator) and a scene (None, or a :class:`Scene` with ``egos`` egos
-    to pick). ``names`` are theirs in the error messages."""
+    to pick, that can be played: ``scene.core.unplayable_reason``). ``names`` are theirs in
+    the error messages."""
     if seed is not None:
         check_int(names[0], seed, ge=0)
     if episode_seed is not None:
@@ -202,6 +203,9 @@ def check_episode_inputs(
     if scene is not None:
         if not isinstance(scene, Scene):
             raise TypeError(f"{names[1]} must be a Scene, got {type(scene).__name__}")
+        reason = unplayable_reason(scene)
+        if reason is not None:
+            raise ValueError(f"{names[1]} {scene.scenario_id!r} cannot be played: {reason}")
         pick_egos(scene, egos)
 
 

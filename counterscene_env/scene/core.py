@@ -365,8 +365,25 @@ def default_current_index(
     )
 
 
+#: Why a stored scene is not played (:func:`unplayable_reason`; also a log too short to
+#: import at all).
+TOO_SHORT = "too short for an episode"
+EGO_ABSENT = "the ego is not in the log at 'now'"
+NO_LANES = "its map has no lanes"
+
+
+def unplayable_reason(scene: Scene) -> str | None:
+    """Why an episode cannot start at the scene's "now" (None: it can): no step after it,
+    the ego not valid then, or no lane to drive on (the ego's lane search needs one)."""
+    if scene.current_index >= scene.num_steps - 1:
+        return TOO_SHORT
+    if not scene.valid[scene.ego_index, scene.current_index]:
+        return EGO_ABSENT
+    if not scene.road.lane_centerlines:
+        return NO_LANES
+    return None
+
+
 def playable(scene: Scene) -> bool:
-    """Whether an episode can start at the scene's "now": a future step, the ego valid now."""
-    return scene.current_index < scene.num_steps - 1 and bool(
-        scene.valid[scene.ego_index, scene.current_index]
-    )
+    """Whether an episode can start at the scene's "now" (:func:`unplayable_reason`)."""
+    return unplayable_reason(scene) is None

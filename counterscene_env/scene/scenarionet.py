@@ -126,8 +126,7 @@ def scenarionet_files(path: str | os.PathLike) -> list[Path]:
         missing = [f for f in files if not f.is_file()]
         if missing:
             raise FileNotFoundError(
-                f"{mapping_file} lists {len(missing)} file(s) that are not there, e.g. "
-                f"{missing[0]}"
+                f"{mapping_file} lists {len(missing)} file(s) that are not there, e.g. {missing[0]}"
             )
     else:
         files = sorted(f for f in path.rglob("*.pkl") if f.name not in INDEX_FILES)

@@ -14,8 +14,9 @@ specs in turn.
   source with fewer scenes than episodes can seat another vehicle as the ego on each pass
   (``egos``, the rule of ``scene/egos.py``).
 
-A stored scene too short for an episode (no step after its "now", or its ego absent then:
-``core.playable``) is skipped and counted in :data:`SKIPPED`; an episode on a short log ends
+A stored scene that cannot be played (no step after its "now", its ego absent then, no lane
+in its map: ``core.unplayable_reason``; or a CommonRoad file that does not read) is skipped
+and counted by reason in :data:`SKIPPED`; an episode on a short log ends
 with the log (``ClosedLoop`` caps its length at the log's last step). A stress run can ask for
 more: ``scenes_for(..., min_future=S)`` seats only stored scenes with at least ``S`` s of log
 after "now" (``Scene.future_duration``).
@@ -24,6 +25,7 @@ after "now" (``Scene.future_duration``).
 from __future__ import annotations
 
 import copy
+from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
@@ -31,7 +33,7 @@ import numpy as np
 
 from counterscene_env.config import COMMONROAD_PREFIX, SCENARIONET_PREFIX, Scenario
 from counterscene_env.scene import prefetch
-from counterscene_env.scene.core import Scene, playable
+from counterscene_env.scene.core import TOO_SHORT, Scene, unplayable_reason
 from counterscene_env.scene.egos import ego_choices, with_ego
 
 #: Generated scenes take their seed from [0, SEED_RANGE).
@@ -85,14 +87,26 @@ def spec_path(spec: str) -> Path:
     return Path(spec.removeprefix(SCENARIONET_PREFIX).removeprefix(COMMONROAD_PREFIX))
 
 
-#: Stored scenes skipped as too short for an episode, by spec (this process).
-SKIPPED: dict[str, int] = {}
+#: Stored scenes skipped, by spec (this process): how many for each reason
+#: (``core.unplayable_reason``'s, or a CommonRoad file that does not read).
+SKIPPED: dict[str, Counter[str]] = {}
+#: The reason of a CommonRoad file that does not read (its message is in the import report).
+UNREADABLE = "the file does not read as a scenario"
+
+
+def skip_text(skipped: Counter[str]) -> str:
+    """``"2 skipped: 1 too short for an episode, 1 its map has no lanes"``; "" for none."""
+    if not skipped:
+        return ""
+    reasons = ", ".join(f"{n} {reason}" for reason, n in sorted(skipped.items()))
+    return f"{sum(skipped.values())} skipped: {reasons}"
 
 
 def stored_scenes(spec: str) -> Iterator[Scene]:
     """The playable scenes of a stored spec (``scenarionet:DIR``, ``commonroad:DIR``, a
     dataset directory or shard), in order; the others are counted in :data:`SKIPPED`."""
     report: dict = {}
+    skipped: Counter[str] = Counter()
     if spec.startswith(COMMONROAD_PREFIX):
         from counterscene_env.scene.commonroad import iter_commonroad
 
@@ -101,16 +115,19 @@ def stored_scenes(spec: str) -> Iterator[Scene]:
         from counterscene_env.scene.reading import iter_scenes
 
         def count(_name: str) -> None:
-            SKIPPED[spec] += 1
+            skipped[TOO_SHORT] += 1
 
         scenes = (scene for scene, _ in iter_scenes(spec_path(spec), on_short=count))
-    SKIPPED[spec] = 0
+    SKIPPED[spec] = skipped
     for scene in scenes:
-        if playable(scene):
+        reason = unplayable_reason(scene)
+        if reason is None:
             yield scene
         else:
-            SKIPPED[spec] += 1
-    SKIPPED[spec] += report.get("too_short", 0)
+            skipped[reason] += 1
+    skipped[TOO_SHORT] += report.get("too_short", 0)
+    skipped[UNREADABLE] += len(report.get("skipped", {})) - report.get("too_short", 0)
+    skipped += Counter()  # drops the reasons that counted none
 
 
 class SceneSource:
@@ -254,10 +271,8 @@ def loaded_scenes(spec: str) -> list[Scene]:
         return kept[1]
     scenes = list(stored_scenes(spec))
     if not scenes:
-        raise FileNotFoundError(
-            f"no playable scene in {spec_path(spec)} (no scene files, or every scene too "
-            "short for an episode)"
-        )
+        why = skip_text(SKIPPED.get(spec, Counter())) or "no scene files"
+        raise FileNotFoundError(f"no playable scene in {spec_path(spec)} ({why})")
     _LOADED.pop(spec, None)
     _LOADED[spec] = (stamp, scenes)
     while len(_LOADED) > LOADED_SPECS:

@@ -47,7 +47,8 @@ def summarize(records: Sequence[dict], config: StressConfig) -> dict:
         "episodes_cut_at_log_end": sum(
             r["rollout_s"] < config.sim.duration - 1e-6 for r in records
         ),
-        "scenes_too_short": SKIPPED.get(config.scenario, 0),
+        # Stored scenes that could not be played, by reason (scene.sources.SKIPPED).
+        "scenes_skipped": dict(SKIPPED.get(config.scenario, {})),
         "overall": overall,
         "config": config.to_dict(),
     }
