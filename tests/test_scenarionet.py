@@ -487,6 +487,22 @@ def test_float32_timestamps_are_resampled_onto_the_exact_grid(tmp_path):
         load_scenarionet(_write(tmp_path, sd))
 
 
+def test_a_gap_in_the_timestamps_leaves_invalid_steps_not_invented_motion(tmp_path):
+    """Frames missing from a log (its clock jumps 1.1 s after 3.9 s): the grid steps inside
+    the hole are invalid for everyone; those on either side read their frames."""
+    n = 61
+    sd = _scenario(n=n)
+    ts = np.arange(n) * 0.1
+    ts[40:] += 1.0  # frame 40 is at 5.0 s: 4.0-4.9 s were never recorded
+    sd["metadata"]["ts"] = ts
+    del sd["metadata"]["sample_rate"]
+    scene = load_scenarionet(_write(tmp_path, sd))
+    assert scene.num_steps == n + 10
+    ego = scene.ego_index
+    assert scene.valid[ego, :40].all() and scene.valid[ego, 50:].all()
+    assert not scene.valid[:, 40:50].any()
+
+
 def test_flat_box_arrays_and_bad_boxes_are_repaired(tmp_path):
     sd = _scenario()
     ped = sd["tracks"]["ped"]["state"]

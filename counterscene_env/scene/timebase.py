@@ -6,7 +6,8 @@ timestamps whose steps run 0.09987-0.10013 s); a :class:`Scene` has ``dt = 0.1``
 integer fraction of it (0.05 s, ...) and places the grid from the first frame;
 :meth:`TimeGrid.apply` reads each grid step from the two frames around it, by plain selection
 where the frames already lie on the grid (nuScenes, 20 Hz logs) and by linear interpolation
-otherwise (headings along the shorter arc). A grid step is valid where the frames it reads are.
+otherwise (headings along the shorter arc). A grid step is valid where the frames it reads are,
+and not inside a gap of the source's clock (frames more than :data:`GAP` steps apart).
 """
 
 from __future__ import annotations
@@ -25,6 +26,9 @@ STEP_TOLERANCE = 0.01
 #: timestamps drift from the grid by up to 2.7 ms over a 9 s Waymo log (0.5 ms in two of the
 #: three Waymo logs here).
 SNAP = 0.05
+#: Two frames more than this many source steps apart have a gap between them: a grid step
+#: inside it is invalid rather than invented by interpolation.
+GAP = 1.5
 
 
 @dataclass(frozen=True)
@@ -37,6 +41,7 @@ class TimeGrid:
     w: np.ndarray
     source_dt: float
     interpolated: bool
+    bridged: np.ndarray | None = None  # [T] bool: steps inside a gap of the source's clock
 
     def apply(
         self, position: np.ndarray, heading: np.ndarray, velocity: np.ndarray, valid: np.ndarray
@@ -57,6 +62,8 @@ class TimeGrid:
         # A frame whose weight is within SNAP of 0 is not needed: a track's first or last
         # frame stays valid when the grid time falls a float32 drift beside it.
         ok = (vi | (w >= 1 - SNAP)) & (vj | (w <= SNAP))
+        if self.bridged is not None:  # no frame was recorded there: nothing to read
+            ok &= ~self.bridged
         wv = np.where(vi & vj, w, np.where(vi, 0.0, 1.0))
         pos = (1 - wv[..., None]) * position[:, i] + wv[..., None] * position[:, j]
         vel = (1 - wv[..., None]) * velocity[:, i] + wv[..., None] * velocity[:, j]
@@ -94,4 +101,7 @@ def time_grid(times: np.ndarray, where: str) -> TimeGrid:
     span = rel[left + 1] - rel[left]
     w = np.clip((grid - rel[left]) / span, 0.0, 1.0)
     on_frames = bool(np.all((w <= 1e-9) | (w >= 1 - 1e-9)))
-    return TimeGrid(left, w, round(step, 9), not on_frames)
+    # Frames further apart than GAP source steps leave a hole in the log (dropped frames):
+    # the grid steps inside it are not read from the two frames around it.
+    bridged = (span * DEFAULT_DT > GAP * step) & (w > SNAP) & (w < 1 - SNAP)
+    return TimeGrid(left, w, round(step, 9), not on_frames, bridged)
