@@ -52,9 +52,10 @@ def print_stress(config, summary: dict, times: dict, scenario: str, workers: int
         f"{fmt(summary['orr_log'])}), moving vehicles {fmt(summary['orr_moving'])} (the log "
         f"itself {fmt(summary['orr_moving_log'])})"
     )
-    if summary["episodes_cut_at_log_end"]:
-        cut = count(summary["episodes_cut_at_log_end"], "episode")
-        print(f"{cut} ended with their log (short logs)")
+    cut = summary["episodes_cut_at_log_end"]
+    if cut:
+        its = "its" if cut == 1 else "their"
+        print(f"{count(cut, 'episode')} ended with {its} log (short logs)")
     if summary["scenes_skipped"]:
         print(f"stored scenes not played: {skip_text(Counter(summary['scenes_skipped']))}")
     print(
