@@ -122,6 +122,23 @@ def test_conversion_lists_bad_files_and_refuses_a_changed_folder(tmp_path):
         convert_scenarionet(src, tmp_path / "out", shard_size=1, progress=False)
 
 
+def test_the_command_names_refused_logs_and_fails_when_none_converts(tmp_path, capsys):
+    from test_scenarionet import _scenario
+
+    from counterscene_env.cli import main
+
+    src = tmp_path / "src"
+    src.mkdir()
+    _write_scenarionet(src / "b.pkl", _scenario())
+    (src / "c.pkl").write_bytes(b"garbage")
+    argv = ["generate", "--from-scenarionet", str(src), "--quiet", "--shard-size", "1"]
+    assert main([*argv, "--out", str(tmp_path / "out")]) == 0
+    assert "refused c.pkl: " in capsys.readouterr().err
+    (src / "b.pkl").unlink()
+    assert main([*argv, "--out", str(tmp_path / "none")]) == 1
+    assert "no log converted: every file was refused" in capsys.readouterr().err
+
+
 def test_a_gap_acceptance_dataset_says_so_and_is_not_mixed_with_a_stock_one(tmp_path):
     out = tmp_path / "d"
     m = generate_dataset(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -130,7 +131,22 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         f"{manifest['scenes']} scenes in {len(manifest['shards'])} shards at {args.out} "
         f"({manifest['rejected']} rejected; {time.perf_counter() - start:.1f} s)"
     )
+    if args.from_commonroad or args.from_scenarionet:
+        from counterscene_env.scene.manifest import MANIFEST
+
+        # A log refused by the importer says why (each one's reason is in the manifest).
+        refused = [r for shard in manifest["shards"] for r in shard["rejected"]]
+        for name, why in refused[:REFUSALS_SHOWN]:
+            print(f"  refused {name}: {why}", file=sys.stderr)
+        if len(refused) > REFUSALS_SHOWN:
+            print(f"  ... and {len(refused) - REFUSALS_SHOWN} more, in {MANIFEST}", file=sys.stderr)
+        if not manifest["scenes"]:
+            raise ValueError(f"no log converted: every file was refused (see {MANIFEST})")
     return 0
+
+
+#: Refused logs of a conversion named on stderr (the manifest lists them all).
+REFUSALS_SHOWN = 5
 
 
 def add_inspect(sub) -> None:
