@@ -69,23 +69,23 @@ def read_scenario_description(path: str | os.PathLike) -> dict:
         with path.open("rb") as f:
             data = safe_load(f)
     except UnsafePickleError as exc:
-        raise UnsafePickleError(f"{path.name}: {exc}") from None
+        raise UnsafePickleError(f"{path}: {exc}") from None
     except OSError as exc:
         raise ScenarioNetError(f"{path}: cannot read file ({exc})") from exc
     except Exception as exc:  # any unpickling failure: not a pickle, truncated, bad numpy data
         raise ScenarioNetError(
-            f"{path.name}: not a readable pickle ({type(exc).__name__}: {exc})"
+            f"{path}: not a readable pickle ({type(exc).__name__}: {exc})"
         ) from exc
     if not isinstance(data, dict):
         raise ScenarioNetError(
-            f"{path.name}: expected a scenario dict at the top level, got {type(data).__name__}"
+            f"{path}: expected a scenario dict at the top level, got {type(data).__name__}"
         )
     for key in ("metadata", "tracks", "map_features"):
         if key not in data:
-            raise ScenarioNetError(f"{path.name}: missing top-level field {key!r}")
+            raise ScenarioNetError(f"{path}: missing top-level field {key!r}")
         if not isinstance(data[key], Mapping):
             raise ScenarioNetError(
-                f"{path.name}: field {key!r} must be a dict, got {type(data[key]).__name__}"
+                f"{path}: field {key!r} must be a dict, got {type(data[key]).__name__}"
             )
     return data
 
@@ -156,14 +156,14 @@ def load_scenarionet(path: str | os.PathLike, current_index: int | None = None) 
     path = Path(path)
     sd = read_scenario_description(path)
     try:
-        return scene_from_description(sd, source=path.name, current_index=current_index)
+        return scene_from_description(sd, source=str(path), current_index=current_index)
     except SceneError:
         raise
     except (TypeError, ValueError, KeyError, IndexError, AttributeError, OverflowError) as exc:
         # A field of a type or shape the checks above did not foresee: still the file's fault,
         # and said so with the file's name rather than a traceback.
         raise ScenarioNetError(
-            f"{path.name}: malformed scenario ({type(exc).__name__}: {exc})"
+            f"{path}: malformed scenario ({type(exc).__name__}: {exc})"
         ) from exc
 
 
