@@ -162,9 +162,7 @@ def load_scenarionet(path: str | os.PathLike, current_index: int | None = None) 
     except (TypeError, ValueError, KeyError, IndexError, AttributeError, OverflowError) as exc:
         # A field of a type or shape the checks above did not foresee: still the file's fault,
         # and said so with the file's name rather than a traceback.
-        raise ScenarioNetError(
-            f"{path}: malformed scenario ({type(exc).__name__}: {exc})"
-        ) from exc
+        raise ScenarioNetError(f"{path}: malformed scenario ({type(exc).__name__}: {exc})") from exc
 
 
 def scene_from_description(
