@@ -962,6 +962,17 @@ def test_sample_refuses_out_of_range_settings_by_name(tiny, scene_batch):
         ({"map_guidance": -1.0}, ValueError, "map_guidance"),
         ({"init_steps": -1}, ValueError, "init_steps"),
         ({"num_samples": 1.5}, TypeError, "num_samples"),
+        ({"sampler": "euler"}, ValueError, "sampler"),
     ):
         with pytest.raises(kind, match=word):
             tiny.sample(scene_batch, **{"num_samples": 1, **kwargs})
+    # The batch itself: float64 states, a NaN in a valid frame, a missing key, one window.
+    bad_batches = (
+        ({**scene_batch, "history": scene_batch["history"].double()}, "must be float32"),
+        ({**scene_batch, "history": scene_batch["history"].clone().fill_(float("nan"))}, "NaN"),
+        ({k: v for k, v in scene_batch.items() if k != "map"}, r"lacks \['map'\]"),
+        ({k: v[0] for k, v in scene_batch.items()}, "unbatched"),
+    )
+    for batch, words in bad_batches:
+        with pytest.raises(ValueError, match=words):
+            tiny.sample(batch, 1)

@@ -269,6 +269,7 @@ def preset(name: str) -> ModelConfig:
 
 
 def check_sampling(
+    sampler: str,
     num_samples: int,
     steps: int | None,
     eta: float | None,
@@ -278,6 +279,8 @@ def check_sampling(
 ) -> None:
     """Raise unless ``WorldModel.sample``'s numbers are in range (None: the config's),
     naming the argument, as the closed loop's settings are checked (``SimConfig``)."""
+    if sampler not in ("ddim", "ddpm"):
+        raise ValueError(f"sampler must be 'ddim' or 'ddpm', got {sampler!r}")
     check_int("num_samples", num_samples, ge=1)
     check_int("init_steps", init_steps, ge=0)
     if steps is not None:

@@ -36,7 +36,7 @@ from counterscene_env.world_model.denoiser import Denoiser
 from counterscene_env.world_model.lane_steering import steer_onto_lanes
 from counterscene_env.world_model.records import GuidanceHook, Normalization, Prediction
 from counterscene_env.world_model.scheduler import CosineScheduler
-from counterscene_env.world_model.window import WindowConfig
+from counterscene_env.world_model.window import WindowConfig, check_batch
 
 
 class WorldModel(nn.Module):
@@ -278,9 +278,8 @@ class WorldModel(nn.Module):
         """
         c = self.config
         sampler = sampler or c.sampler
-        if sampler not in ("ddim", "ddpm"):
-            raise ValueError(f"sampler must be 'ddim' or 'ddpm', got {sampler!r}")
-        check_sampling(num_samples, steps, eta, map_guidance, lane_steering, init_steps)
+        check_sampling(sampler, num_samples, steps, eta, map_guidance, lane_steering, init_steps)
+        check_batch(batch)
         if sampler == "ddpm":
             steps, eta = c.num_train_timesteps, 1.0
         steps = steps or c.sampling_steps

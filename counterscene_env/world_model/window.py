@@ -66,6 +66,29 @@ MODEL_KEYS = (
 )
 
 
+def check_batch(batch: dict[str, torch.Tensor]) -> None:
+    """Raise unless ``batch`` holds the model's keys (:data:`MODEL_KEYS`) as batched tensors,
+    floating ones in float32 (the model's dtype), and finite states where they are valid.
+
+    Raises:
+        ValueError: naming the key (a missing key, an unbatched window, float64 states, a
+            NaN in a valid history frame).
+    """
+    missing = [k for k in MODEL_KEYS if k not in batch]
+    if missing:
+        raise ValueError(f"the batch lacks {missing} (windows from make_window, then collate)")
+    if batch["history"].ndim != 4:
+        raise ValueError(
+            f"batch['history'] must be [B, K, H, 4], got shape {tuple(batch['history'].shape)}"
+            " (an unbatched window? collate batches them)"
+        )
+    for key in MODEL_KEYS:
+        if batch[key].is_floating_point() and batch[key].dtype != torch.float32:
+            raise ValueError(f"batch[{key!r}] must be float32, got {batch[key].dtype}")
+    if not torch.isfinite(batch["history"][batch["history_valid"]]).all():
+        raise ValueError("batch['history'] has a NaN or inf in a valid frame")
+
+
 @dataclass(frozen=True)
 class WindowConfig:
     """Sizes of a training window.
