@@ -15,7 +15,9 @@ from counterscene_env.stress.config import StressConfig
 
 
 def summarize(records: Sequence[dict], config: StressConfig) -> dict:
-    """The paper's table row of a run (package docstring), JSON-ready, without timings.
+    """The paper's table row of a run (package docstring), without timings: plain Python
+    values, with NaN where there is nothing to measure (``metrics.json_safe`` writes it as
+    JSON's null, as ``metrics.json`` and ``--json`` have it).
 
     ``complete`` says whether every requested episode (``episodes_requested``, the config's)
     is in ``records``; a stopped run's summary has ``complete: false`` and ``episodes`` the
