@@ -57,8 +57,8 @@ def add_bench(sub) -> None:
     be.set_defaults(func=_cmd_bench)
 
 
+#: The defaults of the flags that only the whole run reads.
 FULL_BENCH_DEFAULTS = {"steps": 300, "episodes": 4, "vector_envs": "4,16,64", "vector_steps": 50}
-"""The defaults of the flags that only the whole run reads."""
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:

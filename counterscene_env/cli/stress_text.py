@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from collections import Counter
-
 from counterscene_env.cli.common import fmt
 from counterscene_env.report.document import count
 from counterscene_env.scene.sources import skip_text
@@ -57,7 +55,7 @@ def print_stress(config, summary: dict, times: dict, scenario: str, workers: int
         its = "its" if cut == 1 else "their"
         print(f"{count(cut, 'episode')} ended with {its} log (short logs)")
     if summary["scenes_skipped"]:
-        print(f"stored scenes not played: {skip_text(Counter(summary['scenes_skipped']))}")
+        print(f"stored scenes not played: {skip_text(summary['scenes_skipped'])}")
     print(
         f"{fmt(times['seconds_per_episode'])} s per episode, "
         f"{fmt(times['seconds_per_replan'])} s per replan"

@@ -28,14 +28,14 @@ DPI = 110
 
 #: Where the PNGs go, relative to the report's directory.
 PLOTS = Path("plots")
+#: The plots of a run's report (``plots/NAME``).
+CR_HBR_PLOT = "cr_hbr_by_second.png"
+DISPLACEMENT_PLOT = "ade_fde_by_second.png"
+TTC_PLOT = "hist_min_ttc.png"
+CLEARANCE_PLOT = "hist_min_clearance.png"
+DECELERATION_PLOT = "hist_ego_deceleration.png"
 #: Every plot a run's report may draw (a rebuilt report removes those it no longer draws).
-REPORT_PLOTS = (
-    "cr_hbr_by_second.png",
-    "ade_fde_by_second.png",
-    "hist_min_ttc.png",
-    "hist_min_clearance.png",
-    "hist_ego_deceleration.png",
-)
+REPORT_PLOTS = (CR_HBR_PLOT, DISPLACEMENT_PLOT, TTC_PLOT, CLEARANCE_PLOT, DECELERATION_PLOT)
 
 
 def _save(fig: MplFigure, root: Path, name: str) -> Path:
@@ -62,7 +62,7 @@ def per_second_plots(table: dict[str, dict[str, Estimate]], root: Path) -> list[
         table,
         root,
         (("CR", "CR: ego collided by then"), ("HBR", "HBR: ego braked hard")),
-        "cr_hbr_by_second.png",
+        CR_HBR_PLOT,
         "Collision and hard-braking rate against the horizon",
         "CR and HBR at each horizon second: episodes with an ego collision (hard braking) "
         "at or before it; bars are 95 % Wilson intervals.",
@@ -74,7 +74,7 @@ def per_second_plots(table: dict[str, dict[str, Estimate]], root: Path) -> list[
         table,
         root,
         (("ADE", "ADE"), ("FDE", "FDE")),
-        "ade_fde_by_second.png",
+        DISPLACEMENT_PLOT,
         "Traffic's displacement from the factual log",
         "ADE and FDE of the non-ego vehicles against the factual log at each horizon "
         "second; bars are 95 % bootstrap intervals. FDE is missing past the rollout's end.",
@@ -124,14 +124,14 @@ def histograms(records: Sequence[dict], root: Path) -> tuple[list[Figure], list[
     no_conflict = int(np.isinf(ttc).sum())
     specs = [
         (
-            "hist_min_ttc.png",
+            TTC_PLOT,
             ttc[np.isfinite(ttc)],
             "min TTC [s]",
             f"Smallest constant-velocity time to collision of the ego per episode; "
             f"{no_conflict} episodes with no projected conflict are not shown.",
         ),
         (
-            "hist_min_clearance.png",
+            CLEARANCE_PLOT,
             field("min_clearance_adversary")(records),
             "min clearance to the adversary [m]",
             "Smallest box-to-box distance between ego and adversary per episode (0: they "
@@ -141,7 +141,7 @@ def histograms(records: Sequence[dict], root: Path) -> tuple[list[Figure], list[
     if any(DECELERATION_FIELD in r for r in records):
         specs.append(
             (
-                "hist_ego_deceleration.png",
+                DECELERATION_PLOT,
                 field(DECELERATION_FIELD)(records),
                 "ego peak deceleration [m/s²]",
                 "The ego's largest deceleration per episode; hard braking is above 3 m/s².",
@@ -164,7 +164,7 @@ def histograms(records: Sequence[dict], root: Path) -> tuple[list[Figure], list[
         bins = min(30, max(5, values.size // 2))
         ax.hist(values, bins=bins, range=(0.0, top), color="#4477aa", edgecolor="white")
         ax.yaxis.set_major_locator(MaxNLocator(integer=True))
-        if name == "hist_ego_deceleration.png":
+        if name == DECELERATION_PLOT:
             ax.axvline(3.0, color="#cc3311", linestyle="--", label="hard braking (3 m/s²)")
             ax.legend()
         ax.set(xlabel=xlabel, ylabel="episodes", xlim=(0.0, None))

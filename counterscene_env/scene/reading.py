@@ -31,9 +31,7 @@ def iter_scenes(
     from counterscene_env.scene.scenarionet import load_scenarionet, scenarionet_files
 
     if path.is_dir() and not (path / MANIFEST).is_file():
-        if not any(path.rglob("*.pkl")):
-            raise FileNotFoundError(f"{path}: no dataset manifest and no .pkl files")
-        files = scenarionet_files(path)
+        files = scenarionet_files(path)  # raises if there are none
     elif path.suffix == ".pkl":
         files = [path]
     elif path.is_file() and path.suffix != ".npz":

@@ -131,7 +131,7 @@ def scenarionet_files(path: str | os.PathLike) -> list[Path]:
     else:
         files = sorted(f for f in path.rglob("*.pkl") if f.name not in INDEX_FILES)
     if not files:
-        raise FileNotFoundError(f"{path}: no ScenarioNet .pkl files")
+        raise FileNotFoundError(f"{path}: no dataset manifest, and no ScenarioNet .pkl files")
     return files
 
 

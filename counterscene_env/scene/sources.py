@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import copy
 from collections import Counter
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -94,7 +94,7 @@ SKIPPED: dict[str, Counter[str]] = {}
 UNREADABLE = "the file does not read as a scenario"
 
 
-def skip_text(skipped: Counter[str]) -> str:
+def skip_text(skipped: Mapping[str, int]) -> str:
     """``"2 skipped: 1 too short for an episode, 1 its map has no lanes"``; "" for none."""
     if not skipped:
         return ""
@@ -125,9 +125,11 @@ def stored_scenes(spec: str) -> Iterator[Scene]:
             yield scene
         else:
             skipped[reason] += 1
-    skipped[TOO_SHORT] += report.get("too_short", 0)
-    skipped[UNREADABLE] += len(report.get("skipped", {})) - report.get("too_short", 0)
-    skipped += Counter()  # drops the reasons that counted none
+    too_short = report.get("too_short", 0)  # CommonRoad files, counted by their reader
+    unreadable = len(report.get("skipped", {})) - too_short
+    for reason, n in ((TOO_SHORT, too_short), (UNREADABLE, unreadable)):
+        if n:
+            skipped[reason] += n
 
 
 class SceneSource:
@@ -271,7 +273,7 @@ def loaded_scenes(spec: str) -> list[Scene]:
         return kept[1]
     scenes = list(stored_scenes(spec))
     if not scenes:
-        why = skip_text(SKIPPED.get(spec, Counter())) or "no scene files"
+        why = skip_text(SKIPPED.get(spec, {})) or "no scene files"
         raise FileNotFoundError(f"no playable scene in {spec_path(spec)} ({why})")
     _LOADED.pop(spec, None)
     _LOADED[spec] = (stamp, scenes)

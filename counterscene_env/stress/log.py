@@ -128,11 +128,9 @@ class EpisodeLog:
         dropped (and removed from the file at the next append)."""
         if not self.path.is_file():
             return []
-        records, lines, cut = read_records(self.path)
-        if cut or (lines and not self.path.read_text().endswith("\n")):
-            # A kill mid-line: keep the whole records, each ended, so appends start afresh.
-            self._kept = lines
-        return merge_timings([record_from_json(rec) for rec in records], self.dir)
+        # A kill mid-line: the whole records are kept, each ended, so appends start afresh.
+        records, self._kept, _ = read_records(self.path)
+        return records
 
     def append(self, records: Sequence[dict]) -> None:
         """Add finished episodes, on disk before this returns (and ``metrics.json``, with
@@ -160,16 +158,19 @@ class EpisodeLog:
         return self.records
 
 
-def read_records(path: Path) -> tuple[list[dict], list[str], int]:
-    """The records of an ``episodes.jsonl`` as written (JSON values), their lines, and how
-    many cut lines were skipped (a kill mid-write cuts at most the last line).
+def read_records(path: Path) -> tuple[list[dict], list[str] | None, int]:
+    """The finished episodes of an ``episodes.jsonl``, in order (:func:`record_from_json`,
+    timings merged in: :func:`merge_timings`); the lines to rewrite the file with when a kill
+    cut its end (a line cut short, or the last newline lost; None: it ends cleanly); and
+    how many cut lines were skipped (at most the last).
 
     Raises:
         ValueError: a line that is not JSON before the last, a record without a field of
             :data:`REQUIRED_FIELDS`, or episodes out of order (naming the file, the line
             and the field).
     """
-    lines = path.read_text().splitlines()
+    text = path.read_text()
+    lines = text.splitlines()
     records: list[dict] = []
     for n, line in enumerate(lines, start=1):
         try:
@@ -177,7 +178,7 @@ def read_records(path: Path) -> tuple[list[dict], list[str], int]:
         except json.JSONDecodeError:
             if n != len(lines):
                 raise ValueError(f"{path}: line {n} is not JSON") from None
-            return records, lines[: len(records)], 1
+            break
         missing = [k for k in REQUIRED_FIELDS if k not in rec]
         if missing:
             raise ValueError(f"{path}: line {n} has no field {', '.join(map(repr, missing))}")
@@ -186,7 +187,9 @@ def read_records(path: Path) -> tuple[list[dict], list[str], int]:
                 f"{path}: line {n} is episode {rec['episode']!r}, expected {len(records)}"
             )
         records.append(rec)
-    return records, lines, 0
+    cut = len(lines) - len(records)
+    repair = lines[: len(records)] if cut or (text and not text.endswith("\n")) else None
+    return merge_timings([record_from_json(r) for r in records], path.parent), repair, cut
 
 
 def split_timings(record: dict) -> tuple[dict, dict]:
