@@ -111,6 +111,14 @@ def test_resume_extends_the_run_and_matches_an_uninterrupted_one(dataset, tmp_pa
     assert _train(dataset, fresh, 6) == 0
     assert len(_log(fresh)) == 3
     assert json.loads(capsys.readouterr().out) == json.loads(_log(fresh)[-1])
+    # ... and with its log emptied or removed, does nothing more either (no IndexError).
+    log = fresh / "log.jsonl"
+    kept = log.read_bytes()
+    for emptied in (lambda: log.write_text(""), log.unlink):
+        emptied()
+        assert _train(dataset, fresh, 6) == 0
+        assert json.loads(capsys.readouterr().out) == {}
+    log.write_bytes(kept)
     # A smaller --steps than the run holds is refused, as stress refuses fewer --episodes.
     assert _train(dataset, fresh, 4) == 1
     assert "holds a run at step 6, more than --steps 4" in capsys.readouterr().err

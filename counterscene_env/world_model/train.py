@@ -383,6 +383,8 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             model.train()
     if bar is not None:
         bar.close()
-    if not record:  # finished before: the last logged record, not an empty one
-        record = json.loads((out / LOG_FILE).read_text().splitlines()[-1])
+    if not record:  # finished before: the last logged record ({} if its log was removed)
+        log = out / LOG_FILE
+        lines = log.read_text().splitlines() if log.is_file() else []
+        record = json.loads(lines[-1]) if lines else {}
     return record
