@@ -380,7 +380,10 @@ def test_a_collision_terminates_with_the_collision_reward():
     assert info["collision"] and info["collided_with"] == "a2" and info["crashed"]
     assert info["rewards"]["collision_reward"] == 1.0
     assert reward == pytest.approx(-7.0 + 0.5 * info["rewards"]["high_speed_reward"])
-    assert info["metrics"]["cr"] == 1.0
+    assert info["metrics"]["cr"] == 1.0 and info["metrics"]["ends_in_ego_collision"]
+    # The crash ends the episode before 2 s; the horizon tables count it as collided there.
+    assert info["metrics"]["rollout_s"] < 2.0
+    assert counterscene_env.metrics.horizon_values(info["metrics"], "2")["CR"] == 1.0
     with pytest.raises(RuntimeError):
         env.step(ZERO)
     env.close()

@@ -373,6 +373,7 @@ def test_evaluate_scene_record_is_json_and_complete(road):
     assert set(back) == {
         "scenario_id",
         "rollout_s",
+        "ends_in_ego_collision",
         "adversary_id",
         "adversary_ids",
         "per_second",
@@ -431,6 +432,27 @@ def test_horizons_an_episode_never_reached_have_no_value_in_the_tables():
     assert per_second_table([short, long])["10"]["CR"].n == 1
     assert horizon_table([short, long])["8-10s"]["CR"].value == 1.0
     assert metrics.horizon_values(short, "3") and metrics.horizon_values(short, "4") == {}
+
+
+def test_an_episode_that_ended_in_a_collision_counts_as_collided_at_every_later_horizon():
+    """``terminate_on_collision`` ends an episode at its crash: CR within 8 s is 1 for it, not
+    an episode left out of the 8 s column (which biased the horizon CR toward 0). Its ADE has
+    no 8 s trajectory behind it and stays out."""
+    from counterscene_env.report.tables import per_second_table
+
+    def record(rollout, cr, crashed):
+        per = {str(h): {"ADE": 1.0, "FDE": 1.0, "CR": cr, "HBR": 0.0} for h in range(1, 11)}
+        return {"per_second": per, "rollout_s": rollout, "ends_in_ego_collision": crashed}
+
+    crashed, ok = record(3.0, 1.0, True), record(10.0, 0.0, False)
+    assert metrics.horizon_values(crashed, "8") == {"CR": 1.0, "HBR": 0.0}
+    agg = metrics.aggregate([crashed, ok])
+    assert agg["per_second"]["8"]["CR"] == pytest.approx(0.5)
+    assert agg["per_second"]["8"]["ADE"] == pytest.approx(1.0)  # the crashed one is left out
+    table = per_second_table([crashed, ok])["10"]
+    assert table["CR"].n == 2 and table["ADE"].n == 1
+    ended_with_log = record(3.0, 0.0, False)
+    assert metrics.horizon_values(ended_with_log, "8") == {}
 
 
 @pytest.mark.parametrize("n", [1, 7, 27, 50, 400])

@@ -50,15 +50,27 @@ def second_key(h: float) -> str:
     return f"{h:g}"
 
 
+#: The per-second keys whose value an episode that ended in a collision keeps at every later
+#: horizon: what happened to the ego "within h" is settled once it crashed.
+EVENT_KEYS = ("CR", "CR_adv", "HBR", "DEC")
+
+
 def horizon_values(record: dict, second: str) -> dict:
-    """A record's per-second values at horizon ``second`` (a key of its ``per_second``), or
-    ``{}`` where its rollout ended before that second. An episode on a short log ends with
-    the log; its record carries the whole rollout's values to the later horizons ("within
-    h"), but the horizon tables count only the episodes that reached a horizon, as
-    ``paper-tables`` does (docs/metrics.md)."""
-    if float(second) > float(record.get("rollout_s", math.inf)) + 1e-6:
-        return {}
-    return record["per_second"].get(second, {})
+    """A record's per-second values at horizon ``second`` (a key of its ``per_second``).
+
+    An episode whose rollout ended before that second counts there only if it ended with the
+    ego in a collision (``ends_in_ego_collision``: ``terminate_on_collision`` ends it at that
+    step), and then only with its :data:`EVENT_KEYS`: a crash at 3 s is a collision within
+    8 s, but the crashed episode has no 8 s trajectory to score. Any other episode that ended
+    early (with its log) gives ``{}``: one that ended at 3 s without a collision is no
+    collision-free episode "at 10 s" (docs/metrics.md). The tables of ``stress``, ``report``
+    and ``paper-tables`` all read horizons through this."""
+    values = record["per_second"].get(second, {})
+    if float(second) <= float(record.get("rollout_s", math.inf)) + 1e-6:
+        return values
+    if record.get("ends_in_ego_collision", False):
+        return {k: v for k, v in values.items() if k in EVENT_KEYS}
+    return {}
 
 
 def _latest_adversary(sim: Scene, adversary) -> str | None:
@@ -89,8 +101,11 @@ def evaluate_scene(
         smooth: s, moving-average window of the acceleration signal for HBR (0: none).
 
     Returns:
-        ``{"scenario_id", "rollout_s", "adversary_id", "adversary_ids", "per_second",
-        <SCENE_KEYS>}`` where ``adversary_ids`` lists every agent that was the adversary, in
+        ``{"scenario_id", "rollout_s", "ends_in_ego_collision", "adversary_id",
+        "adversary_ids", "per_second", <SCENE_KEYS>}`` where ``rollout_s`` is the rollout's
+        length, s, ``ends_in_ego_collision`` whether the ego overlaps another agent at its last
+        step (an env that terminates on collision ends there; :func:`horizon_values`),
+        ``adversary_ids`` lists every agent that was the adversary, in
         the order they were first chosen, and ``adversary_id`` is the latest (None: none);
         ``per_second[str(h)]`` holds ``ADE``/``FDE`` (m), ``ORR``, ``HBR`` (= hbr_ego within h),
         ``CR`` (ego collided at or before h), ``ORR_log`` (the log's own ORR within h, as
@@ -167,6 +182,7 @@ def evaluate_scene(
     out = {
         "scenario_id": str(sim.scenario_id),
         "rollout_s": float(rollout_steps(sim) * sim.dt),
+        "ends_in_ego_collision": bool(ego_hits[-1]) if ego_hits.size else False,
         "adversary_id": _latest_adversary(sim, adversary),
         "adversary_ids": adversary_ids,
         "per_second": per_second,

@@ -8,7 +8,9 @@ Tables (rows: ``stress.paper.TABLE_ROWS``; metrics: :data:`METRICS`):
 - ``selection``: the selectors, averaged over 3 s and 7 s (the paper's selection table);
 - ``ablation``: the guidance ablations at 3 s, 7 s and 10 s (the paper's appendix table);
 - ``real``: real logs at 3 s, 5 s and 7 s (the shape of the paper's zero-shot table). A log
-  whose rollout ends before a horizon gives no value there; nothing is extrapolated.
+  whose rollout ends before a horizon gives no value there, except an episode that ended in
+  the ego's collision, which counts as collided (``metrics.horizon_values``); nothing is
+  extrapolated.
 
 Under every table, the whole-episode rates (:data:`EPISODE_RATES`): the ego's collisions over
 the whole rollout, and collisions between two other agents that the log does not have.
