@@ -242,6 +242,53 @@ def test_smoothing_removes_a_one_step_position_glitch(road):
     assert metrics.evaluate_scene(scene, smooth=0.5)["hbr_ego"] == 0.0
 
 
+@pytest.mark.parametrize("source", ["position", "speed"])
+def test_braking_in_the_first_rollout_step_is_hard_braking(road, source):
+    """The step from "now" into the rollout is the rollout's first acceleration: an ego that
+    brakes at 5 m/s^2 for that one step only is flagged, as the env's per-step
+    ``info["hard_braking"]`` flags it (its samples read the speed before and after)."""
+    steps = HIST + 30
+    speeds = np.full(steps, 20.0)
+    speeds[HIST:] = 19.5  # HIST is the first rollout step: 0.5 m/s less over 0.1 s
+    x = np.concatenate([[0.0], np.cumsum(speeds[1:] * DT)])
+    pos = np.stack([100 + x, np.zeros(steps)], -1)
+    scene = make_scene(road, pos[None], yaws=np.zeros((1, steps)), speeds=speeds[None])
+    assert scene.current_index == HIST - 1
+    assert metrics.hbr_ego(scene, horizon=1.0, source=source) == 1.0
+    acc, valid = metrics.longitudinal_acceleration(scene, source)
+    assert valid[0, 0] and acc[0, 0] == pytest.approx(-5.0)
+    if source == "position":
+        rec = metrics.evaluate_scene(scene)
+        assert rec["hbr_ego"] == 1.0 and rec["per_second"]["1"]["DEC"] == pytest.approx(5.0)
+
+
+def test_a_steady_turn_is_no_braking_whatever_the_heading_annotation(road):
+    """A car round a 12 m circle at a steady 9 m/s (6.75 m/s^2 sideways) never brakes, even
+    with its heading 0.1 rad off its course (highway-env's bicycle drives at a slip angle; a
+    log's heading is a box annotation). Read against the heading, the sideways acceleration
+    leaked into the longitudinal one as hard braking."""
+    steps, radius, speed = HIST + 30, 12.0, 9.0
+    angle = np.arange(steps) * DT * speed / radius
+    pos = np.stack([radius * np.cos(angle), radius * np.sin(angle)], -1) + np.array([100.0, 0.0])
+    yaws = angle + np.pi / 2 + 0.1  # the course plus a slip angle
+    scene = make_scene(road, pos[None], yaws=yaws[None], speeds=np.full((1, steps), speed))
+    acc, valid = metrics.longitudinal_acceleration(scene)
+    assert valid[0].all() and np.abs(acc[0]).max() < 0.05
+    assert metrics.hbr_ego(scene) == 0.0 and metrics.evaluate_scene(scene)["hbr_ego"] == 0.0
+
+
+@pytest.mark.parametrize("source", ["position", "speed"])
+def test_braking_at_exactly_the_threshold_is_not_hard_braking(road, source):
+    """HBR counts braking *below* -3 m/s^2: a planner that brakes at exactly 3 m/s^2 is not
+    flagged at some steps and not at others as floats round its finite differences."""
+    at = single_car(road, 25.0, -3.0, 0.3)
+    acc, valid = metrics.longitudinal_acceleration(at, source)
+    assert np.abs(acc[valid] + 3.0).max() < 1e-6  # -3 up to rounding, both ways
+    assert metrics.hbr_ego(at, source=source) == 0.0
+    assert metrics.hbr_ego(single_car(road, 25.0, -3.01, 0.3), source=source) == 1.0
+    assert not metrics.is_hard_braking(-3.0 - 1e-9) and metrics.is_hard_braking(-3.001)
+
+
 def test_hbr_within_horizon_only(road):
     cruise, yaws, _ = straight_motion(20.0, 0.0, 0.0, steps=HIST + 50)
     tau = np.arange(30) * DT

@@ -27,6 +27,7 @@ Where we depart from the paper (docs/design.md, "Metric definitions" and
 """
 
 from counterscene_env.metrics.common import (
+    BRAKE_TOLERANCE,
     EXTRA_PER_SECOND_KEYS,
     GROUPS,
     HARD_BRAKE_THRESHOLD,
@@ -35,6 +36,7 @@ from counterscene_env.metrics.common import (
     AccelerationSource,
     agent_index,
     horizon_steps,
+    is_hard_braking,
     rollout_steps,
     wilson_interval,
 )
@@ -68,6 +70,7 @@ from counterscene_env.metrics.safety import (
 )
 
 __all__ = [
+    "BRAKE_TOLERANCE",
     "EXTRA_PER_SECOND_KEYS",
     "GROUPS",
     "HARD_BRAKE_THRESHOLD",
@@ -89,6 +92,7 @@ __all__ = [
     "hbr_paper",
     "horizon_steps",
     "horizon_values",
+    "is_hard_braking",
     "json_safe",
     "longitudinal_acceleration",
     "min_clearance",

@@ -14,6 +14,17 @@ from counterscene_env.scene.core import Scene
 #: Hard-braking threshold on the longitudinal acceleration, m/s^2 (paper: -3.0).
 HARD_BRAKE_THRESHOLD = -3.0
 
+#: m/s^2: how far below a threshold an acceleration must be to count as below it. A
+#: planner that brakes at exactly 3 m/s^2 gives -2.9999999999 or -3.0000000001 out of
+#: ``(9.7 - 10.0) / 0.1``; exactly the threshold is not below it, whichever way floats round.
+BRAKE_TOLERANCE = 1e-6
+
+
+def is_hard_braking(acc, threshold: float = HARD_BRAKE_THRESHOLD):
+    """Whether longitudinal acceleration ``acc`` m/s^2 (a number or an array; NaN: False) is
+    below ``threshold`` m/s^2 (:data:`BRAKE_TOLERANCE`)."""
+    return np.asarray(acc) < threshold - BRAKE_TOLERANCE
+
 
 #: Per-second keys of :func:`evaluate_scene` and :func:`aggregate`: the paper's table.
 PER_SECOND_KEYS = ("ADE", "FDE", "ORR", "HBR", "CR")
@@ -52,11 +63,6 @@ GROUPS = {"1-4s": (1, 2, 3, 4), "5-7s": (5, 6, 7), "8-10s": (8, 9, 10)}
 AccelerationSource = Literal["position", "speed"]
 
 
-# Steps after t that an acceleration sample at t reads: p_t, p_{t+1}, p_{t+2} for positions,
-# s_t, s_{t+1} for speeds. A sample belongs to a horizon only if all of them lie within it.
-REACH = {"position": 2, "speed": 1}
-
-
 def rollout_steps(scene: Scene) -> int:
     """Number of rollout steps, ``T - current_index - 1``."""
     return scene.num_steps - scene.current_index - 1
@@ -73,9 +79,9 @@ def rollout_slice(scene: Scene) -> slice:
     return slice(scene.current_index + 1, scene.num_steps)
 
 
-def in_horizon(scene: Scene, seconds: float | None, reach: int = 0) -> np.ndarray:
-    """``[T_roll]`` bool: rollout steps r whose samples (reading r .. r + reach) lie within h."""
-    return np.arange(rollout_steps(scene)) + reach < horizon_steps(scene, seconds)
+def in_horizon(scene: Scene, seconds: float | None) -> np.ndarray:
+    """``[T_roll]`` bool: the rollout steps within the first ``seconds`` s (None: all)."""
+    return np.arange(rollout_steps(scene)) < horizon_steps(scene, seconds)
 
 
 def agent_index(scene: Scene, agent: int | str) -> int:

@@ -10,13 +10,12 @@ import numpy as np
 
 from counterscene_env.metrics.common import (
     GROUPS,
-    HARD_BRAKE_THRESHOLD,
     PER_SECOND_KEYS,
-    REACH,
     SCENE_KEYS,
     adversary_index,
     adversary_tenures,
     horizon_steps,
+    is_hard_braking,
     nan_mean,
     one_agent,
     rollout_steps,
@@ -128,7 +127,7 @@ def evaluate_scene(
     off = off_road_steps(sim)
     parked = parked_agents(sim)
     acc, mask = braking_samples(sim, None, "position", smooth)
-    flags = (acc < HARD_BRAKE_THRESHOLD) & mask  # as hard_braking_flags, from one pass
+    flags = is_hard_braking(acc) & mask  # as hard_braking_flags, from one pass
     e = sim.ego_index
     ego_acc = acc[e][mask[e]]
     peak_decel = max(0.0, -float(ego_acc.min())) if ego_acc.size else math.nan
@@ -161,7 +160,7 @@ def evaluate_scene(
     steps = np.arange(rollout_steps(sim))
     for h in horizons:
         n = horizon_steps(sim, h)
-        brake_in = mask[e] & (steps + REACH["position"] < n)
+        brake_in = mask[e] & (steps < n)
         ade, fde = ade_fde_of(dist, ok, n) if dist is not None else (math.nan, math.nan)
         per_second[second_key(h)] = {
             "ADE": ade,

@@ -10,11 +10,12 @@ import numpy as np
 from counterscene_env import geometry
 from counterscene_env.metrics.common import (
     HARD_BRAKE_THRESHOLD,
-    REACH,
     AccelerationSource,
     adversary_index,
     in_horizon,
+    is_hard_braking,
     rollout_slice,
+    rollout_steps,
 )
 from counterscene_env.metrics.realism import logged_rollout
 from counterscene_env.scene.core import Scene
@@ -111,24 +112,57 @@ def ego_adversary_collision_steps(scene: Scene, adversary: int | str, since: int
 
 
 def _finite_difference_acceleration(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
-    """The paper's finite differences over the rollout positions.
+    """The paper's finite differences of positions, each sample at the rollout step it ends on.
 
-    ``v_t = (p_{t+1} - p_t) / dt``, ``a_t = (v_{t+1} - v_t) / dt`` (appendix HBR equation),
-    with ``a_t`` stored at rollout step t (it reads steps t, t+1, t+2).
+    ``v_t = (p_t - p_{t-1}) / dt``, ``a_t = (v_t - v_{t-1}) / dt`` (the appendix HBR equation's
+    stencil, ``(p_t - 2 p_{t-1} + p_{t-2}) / dt^2``), at every rollout step t. The first two
+    samples read "now" (and the history step before it): braking in the first rollout step
+    is an acceleration of the rollout, as the per-step ``info["hard_braking"]`` counts it
+    (docs/metrics.md, "HBR").
 
     Returns:
         ``[N, T_roll, 2]`` m/s^2 (NaN where undefined) and ``[N, T_roll]`` bool validity.
     """
-    sl = rollout_slice(scene)
-    p, ok = scene.positions[:, sl], scene.valid[:, sl]
-    n, t = ok.shape
-    acc = np.full((n, t, 2), np.nan)
-    valid = np.zeros((n, t), dtype=bool)
-    if t >= 3:
-        acc[:, :-2] = (p[:, 2:] - 2.0 * p[:, 1:-1] + p[:, :-2]) / scene.dt**2
-        valid[:, :-2] = ok[:, :-2] & ok[:, 1:-1] & ok[:, 2:]
+    c, dt = scene.current_index, scene.dt
+    lo = max(c - 1, 0)
+    p, ok = scene.positions[:, lo:], scene.valid[:, lo:]
+    n, t_roll = scene.num_agents, rollout_steps(scene)
+    acc = np.full((n, t_roll, 2), np.nan)
+    valid = np.zeros((n, t_roll), dtype=bool)
+    if p.shape[1] >= 3:
+        first = lo + 2 - (c + 1)  # the rollout step of the first full stencil (1 without history)
+        acc[:, first:] = (p[:, 2:] - 2.0 * p[:, 1:-1] + p[:, :-2]) / dt**2
+        valid[:, first:] = ok[:, 2:] & ok[:, 1:-1] & ok[:, :-2]
     acc[~valid] = np.nan
     return acc, valid
+
+
+def _travel_directions(scene: Scene) -> np.ndarray:
+    """``[N, T_roll, 2]`` unit vectors: each acceleration sample's direction of travel, the
+    central chord ``p_t - p_{t-2}`` of its stencil (the heading at ``t - 1`` where that chord
+    is shorter than 1 mm: a car standing still).
+
+    The longitudinal acceleration is the second difference's part along the path, the rate
+    of change of speed. Read against the heading instead, a turning car's sideways
+    acceleration leaks into it wherever heading and course differ: highway-env's bicycle
+    moves at a slip angle to its heading, and a log's heading is a box annotation.
+    Measured on the quickstart's junction turn at a steady 9.04 m/s: -4.04 m/s^2 against
+    the heading a step early, -3.03 against the heading at the middle step, -0.01 along the
+    chord (docs/metrics.md, "HBR")."""
+    c = scene.current_index
+    lo = max(c - 1, 0)
+    p = scene.positions[:, lo:]
+    first = lo + 2 - (c + 1)
+    yaw = scene.yaws[:, c : scene.num_steps - 1]
+    heading = np.stack([np.cos(yaw), np.sin(yaw)], -1)
+    out = heading.copy()
+    if p.shape[1] >= 3:
+        chord = p[:, 2:] - p[:, :-2]
+        length = np.linalg.norm(chord, axis=-1, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            along = np.where(length > 1e-3, chord / length, heading[:, first:])
+        out[:, first:] = along
+    return out
 
 
 def _moving_average(x: np.ndarray, valid: np.ndarray, window: int) -> np.ndarray:
@@ -152,10 +186,14 @@ def longitudinal_acceleration(
 
     Args:
         scene: the (simulated) scene.
-        source: ``"position"``: the paper's finite differences of positions, projected with
-            sign on the heading, ``a_lon,t = a_t . (cos psi_t, sin psi_t)`` (negative = braking,
-            whatever the direction of travel); ``"speed"``: ``(s_{t+1} - s_t) / dt`` of the
-            signed speed.
+        source: ``"position"``: the paper's finite differences of positions, their signed
+            part along the direction of travel, ``a_lon,t = a_t . u_t`` with ``u_t`` the unit
+            central chord of the stencil (negative = braking, whatever the direction of
+            travel; :func:`_travel_directions`); ``"speed"``: ``(s_t - s_{t-1}) / dt`` of the
+            signed speed. Either way the sample at rollout step t ends at t, and the first
+            reads "now": the rollout's first step counts. highway-env's bicycle (the ego)
+            moves with the speed before the action, so its positions show a speed change one
+            step later than its speeds do: the ego's last action shows only in ``"speed"``.
         smooth: s, width of a centred moving average over the valid samples of the signal
             (``round(smooth / dt)`` samples, rounded up to an odd count; 0: none). The nuScenes
             10 Hz logs interpolate 2 Hz labels, whose second differences spike at the knots;
@@ -164,20 +202,16 @@ def longitudinal_acceleration(
 
     Returns:
         ``[N, T_roll]`` m/s^2 (NaN where undefined) and ``[N, T_roll]`` bool, valid where every
-        step the sample reads (t .. t+2 for positions, t .. t+1 for speeds) is valid.
+        step the sample reads (t-2 .. t for positions, t-1 .. t for speeds) is valid.
     """
     if source == "position":
         acc_vec, valid = _finite_difference_acceleration(scene)
-        yaw = scene.yaws[:, rollout_slice(scene)]
-        acc = acc_vec[..., 0] * np.cos(yaw) + acc_vec[..., 1] * np.sin(yaw)
+        acc = (acc_vec * _travel_directions(scene)).sum(-1)
     elif source == "speed":
-        sl = rollout_slice(scene)
-        s, ok = scene.speeds[:, sl], scene.valid[:, sl]
-        acc = np.full(s.shape, np.nan)
-        valid = np.zeros(s.shape, dtype=bool)
-        if s.shape[1] >= 2:
-            acc[:, :-1] = (s[:, 1:] - s[:, :-1]) / scene.dt
-            valid[:, :-1] = ok[:, 1:] & ok[:, :-1]
+        c = scene.current_index
+        s, ok = scene.speeds[:, c:], scene.valid[:, c:]
+        acc = (s[:, 1:] - s[:, :-1]) / scene.dt
+        valid = ok[:, 1:] & ok[:, :-1]
     else:
         raise ValueError(f"source must be 'position' or 'speed', got {source!r}")
     window = round(float(smooth) / scene.dt)
@@ -193,7 +227,7 @@ def braking_samples(
     """``[N, T_roll]`` longitudinal accelerations [m/s^2] and the mask of the samples that
     lie within the horizon (the samples HBR thresholds)."""
     acc, valid = longitudinal_acceleration(scene, source, smooth)
-    return acc, valid & in_horizon(scene, horizon, REACH[source])[None]
+    return acc, valid & in_horizon(scene, horizon)[None]
 
 
 def hard_braking_flags(
@@ -201,7 +235,7 @@ def hard_braking_flags(
 ) -> tuple[np.ndarray, np.ndarray]:
     """``[N, T_roll]`` hard-braking flags and the sample mask within the horizon."""
     acc, mask = braking_samples(scene, horizon, source, smooth)
-    return (acc < threshold) & mask, mask
+    return is_hard_braking(acc, threshold) & mask, mask
 
 
 def hbr_ego(
@@ -257,11 +291,15 @@ def hbr_paper(
     westbound car and never flags an eastbound one. Use :func:`hbr_ego` / :func:`hbr_all`.
     """
     acc_vec, valid = _finite_difference_acceleration(scene)
-    valid = valid & in_horizon(scene, horizon, REACH["position"])[None]
-    yaw = scene.yaws[:, rollout_slice(scene)]
+    valid = valid & in_horizon(scene, horizon)[None]
+    valid[:, :2] = False  # the paper's samples read rollout steps only
+    # The paper's psi_t is the heading at the stencil's first step, t - 2 for our sample at t.
+    first = scene.current_index - 1
+    yaw = np.full(valid.shape, np.nan)
+    yaw[:, max(-first, 0) :] = scene.yaws[:, max(first, 0) : scene.num_steps - 2]
     a_lon = np.linalg.norm(acc_vec, axis=-1) * np.cos(yaw)
     n = valid.sum()
-    return float(((a_lon < threshold) & valid).sum() / n) if n else math.nan
+    return float((is_hard_braking(a_lon, threshold) & valid).sum() / n) if n else math.nan
 
 
 def min_ttc_ego(scene: Scene, horizon: float = 10.0, step: float = 0.1) -> float:

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from counterscene_env.metrics import HARD_BRAKE_THRESHOLD, horizon_values
+from counterscene_env.metrics import HARD_BRAKE_THRESHOLD, horizon_values, is_hard_braking
 from counterscene_env.report import stats
 from counterscene_env.report.stats import Estimate, Paired
 
@@ -198,7 +198,7 @@ def _value(record: dict, row: dict, key: str) -> float:
         dec = row.get("DEC")
         if dec is None:  # a record written before DEC existed: only the -3 threshold
             return row.get("HBR", math.nan) if key == "HBR3" else math.nan
-        return math.nan if math.isnan(dec) else float(dec > HBR_THRESHOLDS[key])
+        return math.nan if math.isnan(dec) else float(is_hard_braking(-dec, -HBR_THRESHOLDS[key]))
     if _no_adversary_collision(record, key):
         return 0.0
     value = row.get(key)

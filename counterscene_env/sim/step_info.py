@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from counterscene_env import geometry
-from counterscene_env.metrics import HARD_BRAKE_THRESHOLD
+from counterscene_env.metrics import is_hard_braking
 from counterscene_env.sim.state import Episode
 from counterscene_env.ttc import box_time_to_collision
 
@@ -55,7 +55,7 @@ def ego_step_info(ep: Episode, k: int, replanned: bool) -> dict:
         "time": round((t - ep.start) * log.dt, 9),
         "collision": bool(hits.any()),
         "collided_with": str(log.agent_ids[hit_rows[0]]) if hit_rows.size else None,
-        "hard_braking": bool(acc < HARD_BRAKE_THRESHOLD),
+        "hard_braking": bool(is_hard_braking(acc)),
         "ego_acceleration": float(acc),
         "ego_speed": float(ep.speeds[e, t]),
         "off_road": bool(log.road.off_road(pos[e])),
