@@ -502,6 +502,34 @@ def test_an_episode_that_ended_in_a_collision_counts_as_collided_at_every_later_
     assert metrics.horizon_values(ended_with_log, "8") == {}
 
 
+def test_every_table_counts_an_episode_without_adversary_as_no_collision_with_one():
+    """The ego-adversary CR is a rate over episodes: a selector that finds no adversary in an
+    episode made no collision with one there. ``stress``'s summary, ``report``/``compare``
+    and ``paper-tables`` count it as 0 alike (they disagreed: two dropped it, which scored a
+    selector only on the episodes where it found an adversary). Its record keeps NaN."""
+    from counterscene_env.report import paper_tables
+    from counterscene_env.report.tables import EPISODE_METRICS
+
+    def record(adversary, hit):
+        per = {str(h): {"CR": hit, "CR_adv": hit} for h in range(1, 11)}
+        return {
+            "per_second": per,
+            "rollout_s": 10.0,
+            "adversary_id": adversary,
+            "cr": hit,
+            "cr_ego_adversary": hit,
+        }
+
+    records = [record("a1", 1.0), record(None, math.nan)]
+    assert metrics.aggregate(records)["overall"]["cr_ego_adversary"] == pytest.approx(0.5)
+    assert EPISODE_METRICS["cr_ego_adversary"].estimate(records).value == pytest.approx(0.5)
+    assert paper_tables.episode_flags(records, "cr_ego_adversary").tolist() == [1.0, 0.0]
+    assert paper_tables.per_episode(records, "CR_adv", [3])[:, 0].tolist() == [1.0, 0.0]
+    assert math.isnan(records[1]["cr_ego_adversary"])
+    unplayed = {**record(None, math.nan), "rollout_s": 0.0}
+    assert math.isnan(metrics.rate_value(unplayed, "cr_ego_adversary", math.nan))
+
+
 @pytest.mark.parametrize("n", [1, 7, 27, 50, 400])
 def test_wilson_interval_of_no_and_every_event_ends_exactly_at_0_and_1(n):
     """A table prints "0 [0, 12.5]" for 0 of 27, not a rounding residue as its lower end."""

@@ -54,6 +54,7 @@ from counterscene_env.metrics.report import (
     evaluate_scene,
     horizon_values,
     json_safe,
+    rate_value,
     severity,
 )
 from counterscene_env.metrics.safety import (
@@ -101,6 +102,7 @@ __all__ = [
     "off_road_steps",
     "parked_agents",
     "path_speeds",
+    "rate_value",
     "rollout_steps",
     "severity",
     "wilson_interval",

@@ -72,6 +72,29 @@ def horizon_values(record: dict, second: str) -> dict:
     return {}
 
 
+#: The collision rates with the adversary, whole-episode and per second.
+ADVERSARY_RATES = ("cr_ego_adversary", "CR_adv")
+
+
+def rate_value(record: dict, key: str, value: float | None) -> float:
+    """``value`` of ``key`` from ``record`` as a rate over episodes counts it (NaN: none).
+
+    An episode without an adversary (``adversary_id`` None) made no collision with one: its
+    :data:`ADVERSARY_RATES` count as 0, not as nothing to measure, so that a selector that
+    finds no adversary is not scored on the episodes where it found one only (the paper's
+    main-text CR). Its record keeps NaN; an episode with no rollout step stays NaN. Every
+    table of ``stress``, ``report``, ``compare`` and ``paper-tables`` counts it so."""
+    value = math.nan if value is None else float(value)
+    if (
+        key in ADVERSARY_RATES
+        and math.isnan(value)
+        and record.get("adversary_id") is None
+        and float(record.get("rollout_s", 1.0)) > 0
+    ):
+        return 0.0
+    return value
+
+
 def _latest_adversary(sim: Scene, adversary) -> str | None:
     """The id of the adversary at the last rollout step that had one (None: none)."""
     if adversary is not None and not one_agent(adversary):
@@ -269,7 +292,7 @@ def aggregate(records: Sequence[dict]) -> dict:
         }
     overall = {}
     for key in SCENE_KEYS:
-        values = np.array([r.get(key, math.nan) for r in records], dtype=np.float64)
+        values = np.array([rate_value(r, key, r.get(key)) for r in records], dtype=np.float64)
         if key == "min_ttc":
             values = values[~np.isnan(values)]
             overall[key] = float(np.median(values)) if values.size else math.nan

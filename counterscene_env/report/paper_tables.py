@@ -42,7 +42,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from counterscene_env.metrics import HARD_BRAKE_THRESHOLD, horizon_values, is_hard_braking
+from counterscene_env.metrics import (
+    HARD_BRAKE_THRESHOLD,
+    horizon_values,
+    is_hard_braking,
+    rate_value,
+)
 from counterscene_env.report import stats
 from counterscene_env.report.stats import Estimate, Paired
 
@@ -177,20 +182,10 @@ def per_episode(records: Sequence[dict], key: str, seconds: Sequence[int]) -> np
     return out
 
 
-def _no_adversary_collision(record: dict, key: str) -> bool:
-    """``key`` is an ego-adversary CR (per second or whole episode) and the episode had no
-    adversary: the ego did not collide with one (0), not "nothing to measure"."""
-    return key in ("CR_adv", "cr_ego_adversary") and record.get("adversary_id") is None
-
-
 def episode_flags(records: Sequence[dict], key: str) -> np.ndarray:
     """``[E]`` whole-episode 0/1 flag ``key`` (of :data:`EPISODE_RATES`) per episode; NaN
     where a record lacks it (one written before the key existed)."""
-    out = np.full(len(records), np.nan)
-    for i, r in enumerate(records):
-        value = 0.0 if _no_adversary_collision(r, key) else r.get(key)
-        out[i] = math.nan if value is None else float(value)
-    return out
+    return np.array([rate_value(r, key, r.get(key)) for r in records], dtype=np.float64)
 
 
 def _value(record: dict, row: dict, key: str) -> float:
@@ -199,10 +194,7 @@ def _value(record: dict, row: dict, key: str) -> float:
         if dec is None:  # a record written before DEC existed: only the -3 threshold
             return row.get("HBR", math.nan) if key == "HBR3" else math.nan
         return math.nan if math.isnan(dec) else float(is_hard_braking(-dec, -HBR_THRESHOLDS[key]))
-    if _no_adversary_collision(record, key):
-        return 0.0
-    value = row.get(key)
-    return math.nan if value is None else float(value)
+    return rate_value(record, key, row.get(key))
 
 
 def estimate(values: np.ndarray, is_rate: bool) -> Estimate:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from counterscene_env.metrics import GROUPS, PER_SECOND_KEYS, horizon_values
+from counterscene_env.metrics import GROUPS, PER_SECOND_KEYS, horizon_values, rate_value
 from counterscene_env.report import stats
 from counterscene_env.report.stats import Estimate
 
@@ -49,8 +49,9 @@ class EpisodeMetric:
 
 
 def field(key: str) -> Callable[[Sequence[dict]], np.ndarray]:
-    """``records -> [E]``: record field ``key`` of each episode (NaN where missing)."""
-    return lambda records: np.array([r.get(key, np.nan) for r in records], dtype=np.float64)
+    """``records -> [E]``: record field ``key`` of each episode (NaN where missing), as a
+    rate counts it (``metrics.rate_value``: no adversary, no collision with one)."""
+    return lambda records: np.array([rate_value(r, key, r.get(key)) for r in records], float)
 
 
 def last_second(key: str) -> Callable[[Sequence[dict]], np.ndarray]:
