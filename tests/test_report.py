@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import crash_scene
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from counterscene_env import metrics
 from counterscene_env.cli import _parser, main
@@ -21,7 +23,7 @@ from counterscene_env.report import compare_runs, load_run, write_report
 from counterscene_env.report.compare import to_json
 from counterscene_env.report.document import interval
 from counterscene_env.report.ranking import worst_episodes
-from counterscene_env.report.stats import group_mean, mcnemar_exact, mean
+from counterscene_env.report.stats import group_mean, mcnemar_exact, mean, paired_rate
 from counterscene_env.report.tables import horizon_table
 from counterscene_env.sim import SimConfig
 from counterscene_env.stress import EpisodeLog, StressConfig, run_identity, summarize
@@ -341,6 +343,29 @@ def test_compare_calls_a_null_difference_noise(template, tmp_path):
     assert p.metrics["ade"].low < 0 < p.metrics["ade"].high
     verdicts = to_json(c)["paired"][0]["metrics"]
     assert all(v["verdict"].startswith("inside the noise") for v in verdicts.values())
+
+
+@settings(max_examples=200, deadline=None)
+@given(a_only=st.integers(0, 60), b_only=st.integers(0, 60), same=st.integers(0, 60))
+def test_a_paired_rate_interval_excludes_0_exactly_when_the_test_passes(a_only, b_only, same):
+    """A table prints "inside the noise" beside an interval: the two must agree. (The
+    bootstrap interval of 5 of 20 against 0 of 20 was [-45, -10] points beside p = 0.0625.)"""
+    a = [1.0] * a_only + [0.0] * b_only + [1.0] * same
+    b = [0.0] * a_only + [1.0] * b_only + [1.0] * same
+    if not a:
+        return
+    d = paired_rate(a, b)
+    assert d.low <= d.difference <= d.high
+    assert d.significant == (d.low > 0 or d.high < 0)
+    assert d.significant == (mcnemar_exact(a_only, b_only) < 0.05)
+
+
+def test_paired_rate_of_the_audit_case_and_of_many_pairs():
+    d = paired_rate([1] * 5 + [0] * 15, [0] * 20)
+    assert not d.significant and d.low < 0 < d.high and d.difference == -0.25
+    assert paired_rate([1] * 6 + [0] * 14, [0] * 20).high < 0  # p = 0.031
+    big = paired_rate([1.0] * 700 + [0.0] * 1300, [0.0] * 700 + [1.0] * 1300)  # overflowed
+    assert big.significant and 0.25 < big.low < big.difference < big.high < 0.35
 
 
 def test_mcnemar_exact():

@@ -7,10 +7,15 @@ means over episodes, and paired differences between two runs on the same episode
   episodes: :data:`BOOTSTRAP` resamples from a fixed seed, so a report is reproducible. It is
   somewhat narrow below about 20 episodes; one episode has no spread to resample, so its
   mean has no interval (NaN ends, printed as such) rather than a zero-width one.
-- A **paired difference** (run B minus run A over the episodes both ran) gets a paired
-  bootstrap interval; for a rate the decision is McNemar's exact test (a binomial test on the
-  episodes where the two runs disagree), for a mean whether the interval excludes 0. A
-  difference that does not pass is "inside the noise".
+- A **paired difference** (run B minus run A over the episodes both ran). For a rate the
+  decision is McNemar's exact test (a binomial test on the episodes where the two runs
+  disagree), and the interval is that test inverted: the Clopper-Pearson interval of B's
+  share of the disagreeing episodes, times their share of all pairs
+  (:func:`paired_rate`), so it excludes 0 exactly when the test passes. (Until 3 Dec 2026
+  it was a paired bootstrap, which could exclude 0 beside a test that did not pass: 5 of 20
+  against 0 of 20 gave [-45, -10] points with p = 0.0625.) For a mean the interval is a
+  paired bootstrap and the decision whether it excludes 0. A difference that does not pass
+  is "inside the noise".
 
 NaN values (nothing to measure in an episode) are left out and counted out of ``n``; so are
 infinite ones (a mean of them means nothing).
@@ -115,7 +120,8 @@ class Paired:
 
     Attributes:
         difference: the mean paired difference (a rate difference for 0/1 flags).
-        low, high: its 95 % paired bootstrap interval.
+        low, high: its 95 % interval (rates: the inverted McNemar test, :func:`paired_rate`;
+            means: a paired bootstrap).
         n: pairs with a value in both runs.
         p_value: McNemar's exact p-value for rates, None for means.
         a_only, b_only: for rates, pairs flagged in A only and in B only (the discordant
@@ -146,10 +152,22 @@ def paired_rate(a: Sequence[float], b: Sequence[float]) -> Paired:
     a_only = int(np.count_nonzero((x > 0) & (y == 0)))
     b_only = int(np.count_nonzero((x == 0) & (y > 0)))
     p = mcnemar_exact(a_only, b_only)
-    diff, lo, hi = _paired_bootstrap(y - x)
-    return Paired(
-        diff, lo, hi, int(x.size), p, a_only, b_only, p < ALPHA, "McNemar exact, p < 0.05"
-    )
+    n, discordant = int(x.size), a_only + b_only
+    if n == 0:
+        lo = hi = diff = math.nan
+    elif discordant == 0:
+        # No pair disagrees: the difference is 0, and at most the share of disagreeing
+        # pairs that 0 of n still admits either way.
+        diff, bound = 0.0, clopper_pearson(0, n)[1]
+        lo, hi = -bound, bound
+    else:
+        # Delta = psi (2 pi - 1): psi the share of disagreeing pairs (N / n), pi the share of
+        # them that B flags. Conditional on N, B's count is binomial(N, pi), the same law the
+        # test reads, so pi's Clopper-Pearson interval excludes 1/2 exactly when p < ALPHA.
+        pi_lo, pi_hi = clopper_pearson(b_only, discordant)
+        diff = (b_only - a_only) / n
+        lo, hi = (2 * pi_lo - 1) * discordant / n, (2 * pi_hi - 1) * discordant / n
+    return Paired(diff, lo, hi, n, p, a_only, b_only, p < ALPHA, "McNemar exact, p < 0.05")
 
 
 def paired_mean(a: Sequence[float], b: Sequence[float]) -> Paired:
@@ -178,9 +196,40 @@ def mcnemar_exact(a_only: int, b_only: int) -> float:
     n = a_only + b_only
     if n == 0:
         return 1.0
-    k = min(a_only, b_only)
-    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2.0**n
-    return min(1.0, 2.0 * tail)
+    return min(1.0, 2.0 * binomial_cdf(min(a_only, b_only), n, 0.5))
+
+
+def binomial_cdf(k: int, n: int, p: float) -> float:
+    """``P(X <= k)`` for ``X ~ binomial(n, p)``, summed in log space (exact for any n: the
+    plain ``comb(n, i) / 2**n`` overflows past about 1,000 trials)."""
+    if k < 0:
+        return 0.0
+    if k >= n or p <= 0.0:
+        return 1.0
+    if p >= 1.0:
+        return 0.0
+    lp, lq, lnf = math.log(p), math.log1p(-p), math.lgamma(n + 1)
+    terms = [lnf - math.lgamma(i + 1) - math.lgamma(n - i + 1) + i * lp + (n - i) * lq
+             for i in range(k + 1)]  # fmt: skip
+    top = max(terms)
+    return min(1.0, math.exp(top) * math.fsum(math.exp(t - top) for t in terms))
+
+
+def clopper_pearson(k: int, n: int, alpha: float = ALPHA) -> tuple[float, float]:
+    """The exact (Clopper-Pearson) ``1 - alpha`` interval of a binomial share ``k / n``: the
+    shares p at which neither tail of ``binomial(n, p)`` beyond ``k`` is below ``alpha / 2``
+    (found by bisection to 1e-12)."""
+
+    def solve(increasing) -> float:
+        lo, hi = 0.0, 1.0
+        while hi - lo > 1e-12:
+            mid = 0.5 * (lo + hi)
+            lo, hi = (lo, mid) if increasing(mid) >= 0 else (mid, hi)
+        return 0.5 * (lo + hi)
+
+    low = 0.0 if k == 0 else solve(lambda p: 1.0 - binomial_cdf(k - 1, n, p) - alpha / 2)
+    high = 1.0 if k >= n else solve(lambda p: alpha / 2 - binomial_cdf(k, n, p))
+    return low, high
 
 
 def _pairs(a: Sequence[float], b: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
