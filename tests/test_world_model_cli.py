@@ -192,7 +192,7 @@ def test_evaluate_model_json(trained, dataset, capsys):
     assert result["scenes"] == 3 and result["samples"] == 2 and result["agents"] > 0
     model, cv = result["model"], result["constant_velocity"]
     hz = {"1s", "2s", "3s", "full"}
-    one_draw = ("ade", "fde", "ade_all_samples", "fde_all_samples", "min_ade_6")
+    one_draw = ("ade", "fde", "ade_all_samples", "fde_all_samples", "min_ade_2", "min_fde_2")
     for block, keys in ((model, one_draw), (cv, ("ade", "fde"))):
         for key in keys:
             assert set(block[key]) == hz, key
@@ -203,8 +203,12 @@ def test_evaluate_model_json(trained, dataset, capsys):
     assert model["ade"]["1s"] <= model["ade"]["full"]
     assert cv["ade"]["1s"] <= cv["ade"]["full"]
     for h in hz:
-        assert model["min_ade_6"][h] <= model["ade"][h] + 1e-9
-        assert model["min_ade_6"][h] <= model["ade_all_samples"][h] + 1e-9
+        assert model["min_ade_2"][h] <= model["ade"][h] + 1e-9
+        assert model["min_ade_2"][h] <= model["ade_all_samples"][h] + 1e-9
+    # The best-of keys name the sample count they are the best of (--samples 2), nowhere 6.
+    assert "min_ade_2_ratio_to_cv" in result and "min_ade_6_ratio_to_cv" not in result
+    for block in (result, *result["by_speed"].values(), result["still"]):
+        assert "min_fde_2" in block["model"] and "min_ade_6" not in block["model"]
     # The mean over the samples is another estimate of one draw's error: with one sample it
     # is that sample's.
     assert model["ade_all_samples"] != model["ade"]

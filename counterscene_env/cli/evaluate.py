@@ -199,7 +199,7 @@ def _print_evaluation(result: dict) -> None:
         ("model ADE [m]", result["model"]["ade"]),
         ("model FDE [m]", result["model"]["fde"]),
         ("  mean of samples ADE", result["model"]["ade_all_samples"]),
-        (f"model minADE_{result['samples']} [m]", result["model"]["min_ade_6"]),
+        (f"model minADE_{result['samples']} [m]", result["model"][f"min_ade_{result['samples']}"]),
         ("const. vel. ADE [m]", result["constant_velocity"]["ade"]),
         ("const. vel. FDE [m]", result["constant_velocity"]["fde"]),
     ]

@@ -22,11 +22,17 @@ def add_train(sub) -> None:
         description=(
             "Train on dataset directories and write model.safetensors + config.json (the EMA "
             "weights), last.pt (to resume) and log.jsonl into --out. Rerun the same command to "
-            "continue; a larger --steps extends the run."
+            "continue; a larger --steps extends the run. A new run (no last.pt in --out) "
+            "replaces any log.jsonl there and refuses an --out that holds a model."
         ),
     )
     tr.add_argument("--data", required=True, nargs="+", metavar="DIR", help="dataset directories")
-    tr.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    tr.add_argument(
+        "--out",
+        required=True,
+        metavar="DIR",
+        help="output directory: a new one, or a run's to resume (never another model's)",
+    )
     tr.add_argument("--preset", default="default", help="model preset: default or paper")
     tr.add_argument("--steps", type=int, default=20000, help="optimiser steps (default 20000)")
     tr.add_argument("--batch-size", type=int, default=32, help="windows per step (default 32)")

@@ -23,7 +23,7 @@ from typing import Any
 
 import torch
 
-from counterscene_env.world_model.config import ModelConfig
+from counterscene_env.world_model.config import ModelConfig, check_preset_name
 from counterscene_env.world_model.model import WorldModel
 from counterscene_env.world_model.records import Normalization
 
@@ -102,6 +102,10 @@ def read_config(directory: str | os.PathLike) -> dict[str, Any]:
     for key in ("architecture", "normalization"):
         if not isinstance(meta.get(key), dict):
             raise CheckpointError(f"{cfg_path} has no {key!r} section")
+    try:
+        check_preset_name("preset", meta.get("preset"))
+    except ValueError as exc:
+        raise CheckpointError(f"{cfg_path}: {exc}") from None
     return meta
 
 

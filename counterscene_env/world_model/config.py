@@ -10,15 +10,18 @@ sampler. Both build the same network class; only the sizes differ.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 from counterscene_env.config import (
+    DEFAULT_DT,
     LaneAnchors,
     PlanFeatures,
     PredictionTarget,
     Sampler,
+    bounded,
     check_fields,
     check_int,
     check_real,
@@ -117,7 +120,10 @@ class ModelConfig:
             dynamics"); the defaults are looser because the training traffic
             needs it (highway-env's roundabout corners above 2 pi m/s^2 in ~27 % of its steps,
             and yielding cars at the intersection turn in place faster than 0.5 v).
-        dt: step length [s].
+        dt: step length [s]: the scenes' step, ``config.DEFAULT_DT`` (0.1 s), and no other.
+            Every count above is of 10 Hz frames cut from the scenes, and the rollout turns the
+            actions into positions with ``dt``: any other value would move the predictions
+            at the wrong speed.
     """
 
     history_steps: int = 31
@@ -148,16 +154,16 @@ class ModelConfig:
     sampler: str = choice_field(Sampler, Sampler.DDIM)
     sampling_steps: int = 10
     eta: float = 1.0
-    clip_sample: float = 5.0
-    map_guidance: float = 0.0
-    lane_steering: int = 0
+    clip_sample: float = bounded(5.0, ge=0)
+    map_guidance: float = bounded(0.0, ge=0)
+    lane_steering: int = bounded(0, ge=0)
     hold_parked: float = 0.0
     yaw_gain: float = 1.0
     lateral_limit: float = 25.0
-    dt: float = 0.1
+    dt: float = DEFAULT_DT
 
     def __post_init__(self) -> None:
-        check_fields(self)  # types, finite numbers and the choices, each naming its key
+        check_fields(self)  # types, ranges, finite numbers and the choices, each naming its key
         checks = [
             (self.history_steps >= 1, "history_steps must be >= 1"),
             (self.future_steps >= 1, "future_steps must be >= 1"),
@@ -188,6 +194,11 @@ class ModelConfig:
             (0.0 <= self.eta <= 1.0, "eta must be in [0, 1] (0: DDIM, 1: DDPM posterior)"),
             (0.0 <= self.graph_dropout < 1.0, "graph_dropout must be in [0, 1)"),
             (self.hold_parked >= 0.0, "hold_parked must be >= 0 (0 disables it)"),
+            (
+                math.isclose(self.dt, DEFAULT_DT, rel_tol=1e-9),
+                f"dt must be {DEFAULT_DT} s (the scenes' step: the model reads 10 Hz frames), "
+                f"got {self.dt!r}",
+            ),
         ]
         for ok, message in checks:
             if not ok:
@@ -266,6 +277,17 @@ def preset(name: str) -> ModelConfig:
         return PRESETS[name]
     except KeyError:
         raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}") from None
+
+
+def check_preset_name(key: str, value: Any) -> str | None:
+    """``value`` if it names a preset, or None (a model saved without one, such as
+    ``checkpoint.save_model``'s default): a checkpoint's ``"preset"``.
+
+    Raises:
+        ValueError: anything else, naming ``key``, the value and the valid names."""
+    if value is None or (isinstance(value, str) and value in PRESETS):
+        return value
+    raise ValueError(f"{key} must be one of {sorted(PRESETS)} or null, got {value!r}")
 
 
 def check_sampling(

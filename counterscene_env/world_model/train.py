@@ -5,7 +5,11 @@ imported scenes. Everything is seeded; the run is resumable: every ``checkpoint_
 ``DIR/last.pt`` (plain containers, read back with ``torch.load(weights_only=True)``) and the EMA
 model as ``DIR/model.safetensors`` + ``DIR/config.json`` are written, and rerunning the same
 command continues from the last checkpoint and reproduces the same run. ``DIR/log.jsonl`` gets one
-line per validation.
+line per validation, each step once: a resumed run drops the records past its ``last.pt`` (a
+run stopped between its record and its ``last.pt`` reruns those steps), and a fresh run
+replaces any log it finds. A fresh run writes ``last.pt`` at step 0 before anything else and
+refuses a directory that holds a model but no ``last.pt`` (``run_dir.check_fresh_out``):
+that model is not its own.
 
 Validation: a held-out slice of the scenes of each dataset (the last ``val_fraction``), one
 sample per window from the EMA model with the default sampler, ADE over the whole horizon and
@@ -36,6 +40,16 @@ from counterscene_env.world_model.loss import training_loss
 from counterscene_env.world_model.model import WorldModel
 from counterscene_env.world_model.parked import add_parked_cars
 from counterscene_env.world_model.records import Normalization
+from counterscene_env.world_model.run_dir import (
+    LOG_FILE,
+    STATE_FILE,
+    check_fresh_out,
+    check_resume,
+    data_fingerprint,
+    read_state,
+    save_state,
+    trim_log,
+)
 from counterscene_env.world_model.train_config import (
     UNSIZED_FIELDS,
     TrainConfig,
@@ -43,8 +57,6 @@ from counterscene_env.world_model.train_config import (
     plain_settings,
 )
 
-STATE_FILE = "last.pt"
-LOG_FILE = "log.jsonl"
 #: ``ModelConfig`` switches that a fine-tune (``--init``) may turn on: each adds input columns
 #: that start at zero, so the fine-tune starts from the initial model's exact predictions.
 ADDED_INPUTS = ("lane_priority", "source_flag")
@@ -96,20 +108,6 @@ def validate(
     return {"val_ade": total / max(n, 1), "val_fde": fde / max(nf, 1)}
 
 
-def _read_state(path: Path, device: torch.device) -> dict[str, Any]:
-    """The resumable state of a run (plain containers only: ``weights_only``).
-
-    Raises:
-        ValueError: naming the file, when it is not a readable state (cut short, foreign)."""
-    try:
-        return torch.load(path, weights_only=True, map_location=device)
-    except Exception as exc:  # torch raises several kinds for a damaged or foreign file
-        raise ValueError(
-            f"{path} is not a readable training state ({type(exc).__name__}: {exc}); delete "
-            "it to start the run over"
-        ) from None
-
-
 def torch_device(name: str) -> torch.device:
     """``--device``: a torch device this machine has.
 
@@ -131,6 +129,14 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file, not a directory")
     device = torch_device(cfg.device)
+    # The directory first: a refused run reads no data and writes nothing.
+    state_path = out / STATE_FILE
+    fingerprint = data_fingerprint(cfg.data)
+    state = read_state(state_path, device) if state_path.is_file() else None
+    if state is not None:
+        check_resume(state, cfg, state_path, fingerprint)
+    else:
+        check_fresh_out(out, cfg.init)
     torch.manual_seed(cfg.seed)
     model_cfg = get_preset(cfg.preset).replace(**dict(cfg.model_overrides))
 
@@ -173,21 +179,7 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         else None
     )
 
-    state_path = out / STATE_FILE
-    state = _read_state(state_path, device) if state_path.is_file() else None
     if state is not None:
-        old, new = state["config"], plain_settings(cfg)
-        changed = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
-        if changed:
-            raise ValueError(
-                f"{state_path} belongs to a run with different settings ({', '.join(changed)}); "
-                "use a new --out directory or delete it to start over"
-            )
-        if int(state["step"]) > cfg.steps:  # its record and weights are past --steps
-            raise ValueError(
-                f"{out} holds a run at step {state['step']}, more than --steps {cfg.steps}: "
-                f"rerun with --steps {state['step']} or more, or use another --out"
-            )
         normalization = Normalization(
             *(tuple(state["normalization"][k]) for k in ("action_mean", "action_std"))
         )
@@ -306,7 +298,30 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
         )
     if cfg.init is not None:  # provenance of a fine-tune: where it started
         info.update(init=cfg.init, init_training=dict(start.training_info))
+    t_start = time.perf_counter() - elapsed
+
+    def snapshot() -> dict[str, Any]:
+        """The resumable state at ``step`` (plain containers: ``weights_only``)."""
+        return {
+            "step": step,
+            "elapsed": time.perf_counter() - t_start,
+            "config": plain_settings(cfg),
+            "data_files": fingerprint,
+            "normalization": normalization.to_dict(),
+            "model": model.state_dict(),
+            "ema": ema.state_dict(),
+            "optimizer": opt.state_dict(),
+            "noise": noise.get_state(),
+        }
+
     out.mkdir(parents=True, exist_ok=True)  # every check is done: a refused run writes nothing
+    if state is None:
+        # A fresh run's log starts empty (one left here is another run's), and its last.pt
+        # comes before its first model, so that a stop in between still resumes.
+        (out / LOG_FILE).unlink(missing_ok=True)
+        save_state(out, snapshot())
+    else:
+        trim_log(out / LOG_FILE, step)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -321,7 +336,6 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
     )
     running: dict[str, float] = {}
     record: dict[str, Any] = {}
-    t_start = time.perf_counter() - elapsed
     model.train()
     while step < cfg.steps:
         for group in opt.param_groups:
@@ -357,24 +371,12 @@ def train(cfg: TrainConfig, progress: bool = True) -> dict[str, Any]:
             if val_data is not None:
                 record.update(validate(ema, val_data, cfg.seed))
             record["wall_time_s"] = round(time.perf_counter() - t_start, 1)
+            # Record, model, then state: a stop in between resumes from the previous last.pt,
+            # whose rerun steps replace their records (trim_log) and the model.
             with open(out / LOG_FILE, "a") as fh:
                 fh.write(json.dumps(record) + "\n")
             save_model(ema, out, cfg.preset, {**info, "steps": step, **record})
-            tmp = out / (STATE_FILE + ".tmp")
-            torch.save(
-                {
-                    "step": step,
-                    "elapsed": time.perf_counter() - t_start,
-                    "config": plain_settings(cfg),
-                    "normalization": normalization.to_dict(),
-                    "model": model.state_dict(),
-                    "ema": ema.state_dict(),
-                    "optimizer": opt.state_dict(),
-                    "noise": noise.get_state(),
-                },
-                tmp,
-            )
-            os.replace(tmp, state_path)
+            save_state(out, snapshot())
             if bar is not None and "val_ade" in record:
                 bar.write(
                     f"step {step}: loss {record['loss']:.4f}  val ADE {record['val_ade']:.3f} m  "

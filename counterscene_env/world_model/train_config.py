@@ -1,5 +1,6 @@
 """The settings of one ``counterscene train`` run: :class:`TrainConfig`, checked on creation,
-its learning-rate schedule, and the plain form a resumed run is compared against.
+its learning-rate schedule, and the plain form a resumed run is compared against
+(``world_model/run_dir.py`` compares it).
 
 ``world_model/train.py`` runs the loop; the CLI (``cli/model.py``) builds the config.
 """
@@ -10,11 +11,18 @@ import dataclasses
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from counterscene_env.config import MAX_RUN_SEED, bounded, check_fields
 
-__all__ = ["UNSIZED_FIELDS", "TrainConfig", "learning_rate", "plain_settings"]
+__all__ = ["UNSIZED_FIELDS", "TrainConfig", "learning_rate", "plain_settings", "same_path"]
+
+
+def same_path(path: str | os.PathLike) -> str:
+    """``path`` as one spelling per file: absolute, symlinks resolved, no trailing slash
+    (``data/x/``, ``./data/x`` and ``/abs/data/x`` are one dataset)."""
+    return str(Path(path).resolve())
 
 
 @dataclass(frozen=True)
@@ -96,9 +104,9 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)  # every number by type and range, naming the field
-        data = {os.path.normpath(d) for d in self.data}
+        data = {same_path(d) for d in self.data}
         for key in ("agent_centred", "smooth_tracks"):
-            unknown = [d for d in getattr(self, key) if os.path.normpath(d) not in data]
+            unknown = [d for d in getattr(self, key) if same_path(d) not in data]
             if unknown:
                 raise ValueError(f"{key} names datasets not in data: {unknown}")
         if self.data_weights is not None:
@@ -113,7 +121,7 @@ class TrainConfig:
     def marked(self, key: str, dataset: str) -> bool:
         """Whether ``dataset`` of ``data`` is among ``key``'s (``agent_centred``,
         ``smooth_tracks``), as a path: ``data/x/`` and ``data/x`` are one dataset."""
-        return os.path.normpath(dataset) in {os.path.normpath(d) for d in getattr(self, key)}
+        return same_path(dataset) in {same_path(d) for d in getattr(self, key)}
 
 
 # ModelConfig fields that size no tensor, so ``--init`` may change them: which lanes the window
