@@ -1,5 +1,6 @@
 """Scene metrics on tiny hand-made scenes with known answers."""
 
+import dataclasses
 import json
 import math
 
@@ -320,6 +321,27 @@ def test_car_leaving_the_road_known_orr(road):
     assert res["per_second"]["5"]["ORR"] == 0.0
     assert res["per_second"]["6"]["ORR"] == pytest.approx(10 / 120)
     assert res["per_second"]["10"]["ORR"] == pytest.approx(0.25)
+
+
+def test_orr_counts_only_the_steps_inside_a_cropped_maps_extent(road):
+    """A real map is a crop: a car beyond its extent is neither on nor off its roads, so the
+    rate leaves those steps out of its denominator too (they counted as on the road, which
+    diluted the rate of a car that drove off inside the crop)."""
+    import shapely
+
+    cropped = dataclasses.replace(road, extent=shapely.box(0.0, -30.0, 60.0, 30.0))
+    steps = HIST + 100
+    pos = np.zeros((2, steps, 2))
+    pos[:, :, 0] = 10 + 0.5 * np.arange(steps)  # x from 10 m: leaves the crop after 50 m
+    pos[0, :, 1] = 20.0  # off the road (y beyond 6 m) the whole way
+    pos[1, :, 1] = 2.0  # on the road
+    scene = make_scene(cropped, pos)
+    inside = int((pos[0, HIST:, 0] < 60.0).sum())
+    assert 0 < inside < 100
+    assert metrics.off_road_rate(scene) == pytest.approx(0.5)  # inside: 1 of the 2 cars
+    rec = metrics.evaluate_scene(scene, factual=scene)
+    assert rec["orr"] == pytest.approx(0.5) and rec["orr_log"] == pytest.approx(0.5)
+    assert metrics.off_road_rate(make_scene(road, pos)) == pytest.approx(0.5)  # no crop
 
 
 def test_the_logs_own_off_road_share_is_the_reference_for_the_rollouts(road):

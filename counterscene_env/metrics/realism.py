@@ -59,6 +59,14 @@ def off_road_steps(scene: Scene) -> np.ndarray:
     return scene.road.off_road(scene.positions[:, sl]) & scene.valid[:, sl]
 
 
+def judged_steps(scene: Scene) -> np.ndarray:
+    """``[N, T_roll]`` bool: agent valid and its centre where the map can judge it (inside the
+    map's extent, :meth:`RoadMap.judged`): the steps an off-road rate counts. A real map is a
+    crop; a car beyond it is neither on nor off its roads."""
+    sl = rollout_slice(scene)
+    return scene.road.judged(scene.positions[:, sl]) & scene.valid[:, sl]
+
+
 def off_road_rate_of(
     scene: Scene,
     off: np.ndarray,
@@ -68,13 +76,13 @@ def off_road_rate_of(
     valid: np.ndarray | None = None,
 ) -> float:
     """ORR from precomputed :func:`off_road_steps`, over the vehicles among ``rows`` ([N] bool;
-    None: all), at the steps where ``valid`` ``[N, T_roll]`` (None: ``scene``'s own rollout
-    validity; :func:`logged_off_road_steps` gives the log's)."""
+    None: all), at the steps where ``valid`` ``[N, T_roll]`` (None: :func:`judged_steps` of
+    ``scene``; :func:`logged_off_road_steps` gives the log's)."""
     veh = scene.vehicle_mask.copy() if rows is None else scene.vehicle_mask & rows
     if not include_ego:
         veh[scene.ego_index] = False
     if valid is None:
-        valid = scene.valid[:, rollout_slice(scene)]
+        valid = judged_steps(scene)
     mask = valid & in_horizon(scene, horizon)[None] & veh[:, None]
     n = mask.sum()
     return float((off & mask).sum() / n) if n else math.nan
@@ -83,7 +91,8 @@ def off_road_rate_of(
 def off_road_rate(scene: Scene, horizon: float | None = None, include_ego: bool = True) -> float:
     """ORR: fraction of valid vehicle agent-steps within the horizon whose centre is off-road.
 
-    The paper's ``1/(NT) sum 1[p not in D]`` over valid steps only. NaN if there are none.
+    The paper's ``1/(NT) sum 1[p not in D]`` over valid steps only, and only those inside the
+    map's extent (:func:`judged_steps`). NaN if there are none.
     """
     return off_road_rate_of(scene, off_road_steps(scene), horizon, include_ego)
 
@@ -135,10 +144,11 @@ def logged_off_road_steps(sim: Scene, factual: Scene) -> tuple[np.ndarray, np.nd
 
     Returns:
         ``[N_sim, T_roll]`` bool off the road, and ``[N_sim, T_roll]`` bool where the log has
-        the agent.
+        the agent where the map can judge it (:meth:`RoadMap.judged`).
     """
     p_fac, _, ok_fac = logged_rollout(sim, factual)
-    return sim.road.off_road(p_fac) & ok_fac, ok_fac
+    judged = sim.road.judged(p_fac) & ok_fac
+    return sim.road.off_road(p_fac) & judged, judged
 
 
 def displacement_steps(sim: Scene, factual: Scene) -> tuple[np.ndarray, np.ndarray]:

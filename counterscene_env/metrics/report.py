@@ -23,6 +23,7 @@ from counterscene_env.metrics.common import (
 from counterscene_env.metrics.realism import (
     ade_fde_of,
     displacement_steps,
+    judged_steps,
     logged_off_road_steps,
     non_ego_vehicles,
     off_road_rate_of,
@@ -147,7 +148,7 @@ def evaluate_scene(
     """
     ego_hits = ego_collision_steps(sim)
     overlaps = agent_overlaps(sim)
-    off = off_road_steps(sim)
+    off, judged = off_road_steps(sim), judged_steps(sim)
     parked = parked_agents(sim)
     acc, mask = braking_samples(sim, None, "position", smooth)
     flags = is_hard_braking(acc) & mask  # as hard_braking_flags, from one pass
@@ -188,7 +189,7 @@ def evaluate_scene(
         per_second[second_key(h)] = {
             "ADE": ade,
             "FDE": fde,
-            "ORR": off_road_rate_of(sim, off, h, include_ego=True),
+            "ORR": off_road_rate_of(sim, off, h, include_ego=True, valid=judged),
             "ORR_log": math.nan
             if off_log is None
             else off_road_rate_of(sim, off_log, h, True, valid=ok_log),
@@ -216,9 +217,9 @@ def evaluate_scene(
         "hbr_ego": hbr_ego_of(flags, mask, sim),
         "hbr_all": hbr_all_of(flags, mask, sim),
         "hbr_paper": hbr_paper(sim),
-        "orr": off_road_rate_of(sim, off, None, include_ego=True),
-        "orr_parked": off_road_rate_of(sim, off, None, True, parked),
-        "orr_moving": off_road_rate_of(sim, off, None, True, ~parked),
+        "orr": off_road_rate_of(sim, off, None, include_ego=True, valid=judged),
+        "orr_parked": off_road_rate_of(sim, off, None, True, parked, judged),
+        "orr_moving": off_road_rate_of(sim, off, None, True, ~parked, judged),
         "orr_log": orr_log,
         "orr_moving_log": orr_moving_log,
         "min_ttc": min_ttc_ego(sim),

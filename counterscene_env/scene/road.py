@@ -136,10 +136,24 @@ class RoadMap:
             ``[...]`` bool; False for non-finite points.
         """
         points = np.asarray(points, dtype=np.float64)
-        off = ~points_in_area(self.drivable_area, points) & np.isfinite(points).all(-1)
+        return ~points_in_area(self.drivable_area, points) & self.judged(points)
+
+    def judged(self, points: np.ndarray) -> np.ndarray:
+        """Whether :meth:`off_road` can judge points: finite and inside the map's extent (a
+        real map is a crop; beyond it the map says nothing). An off-road *rate* counts only
+        judged points, on top of the line and under it.
+
+        Args:
+            points: ``[..., 2]`` m, world frame.
+
+        Returns:
+            ``[...]`` bool.
+        """
+        points = np.asarray(points, dtype=np.float64)
+        ok = np.isfinite(points).all(-1)
         if self.extent is not None:
-            off &= points_in_area(self.extent, points)
-        return off
+            ok &= points_in_area(self.extent, points)
+        return ok
 
     @classmethod
     def from_network(
