@@ -111,6 +111,15 @@ def ego_adversary_collision_steps(scene: Scene, adversary: int | str, since: int
     return hit
 
 
+def _stencils(scene: Scene) -> tuple[np.ndarray, np.ndarray, int]:
+    """The positions the acceleration samples read: ``[N, T', 2]`` m and ``[N, T']`` valid
+    from the step before "now" on (from "now" without history), and the rollout step of the
+    first full three-step stencil (0, or 1 without history)."""
+    c = scene.current_index
+    lo = max(c - 1, 0)
+    return scene.positions[:, lo:], scene.valid[:, lo:], lo + 2 - (c + 1)
+
+
 def _finite_difference_acceleration(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     """The paper's finite differences of positions, each sample at the rollout step it ends on.
 
@@ -123,15 +132,12 @@ def _finite_difference_acceleration(scene: Scene) -> tuple[np.ndarray, np.ndarra
     Returns:
         ``[N, T_roll, 2]`` m/s^2 (NaN where undefined) and ``[N, T_roll]`` bool validity.
     """
-    c, dt = scene.current_index, scene.dt
-    lo = max(c - 1, 0)
-    p, ok = scene.positions[:, lo:], scene.valid[:, lo:]
+    p, ok, first = _stencils(scene)
     n, t_roll = scene.num_agents, rollout_steps(scene)
     acc = np.full((n, t_roll, 2), np.nan)
     valid = np.zeros((n, t_roll), dtype=bool)
     if p.shape[1] >= 3:
-        first = lo + 2 - (c + 1)  # the rollout step of the first full stencil (1 without history)
-        acc[:, first:] = (p[:, 2:] - 2.0 * p[:, 1:-1] + p[:, :-2]) / dt**2
+        acc[:, first:] = (p[:, 2:] - 2.0 * p[:, 1:-1] + p[:, :-2]) / scene.dt**2
         valid[:, first:] = ok[:, 2:] & ok[:, 1:-1] & ok[:, :-2]
     acc[~valid] = np.nan
     return acc, valid
@@ -149,19 +155,14 @@ def _travel_directions(scene: Scene) -> np.ndarray:
     Measured on the quickstart's junction turn at a steady 9.04 m/s: -4.04 m/s^2 against
     the heading a step early, -3.03 against the heading at the middle step, -0.01 along the
     chord (docs/metrics.md, "HBR")."""
-    c = scene.current_index
-    lo = max(c - 1, 0)
-    p = scene.positions[:, lo:]
-    first = lo + 2 - (c + 1)
-    yaw = scene.yaws[:, c : scene.num_steps - 1]
-    heading = np.stack([np.cos(yaw), np.sin(yaw)], -1)
-    out = heading.copy()
+    p, _, first = _stencils(scene)
+    yaw = scene.yaws[:, scene.current_index : scene.num_steps - 1]
+    out = np.stack([np.cos(yaw), np.sin(yaw)], -1)
     if p.shape[1] >= 3:
         chord = p[:, 2:] - p[:, :-2]
         length = np.linalg.norm(chord, axis=-1, keepdims=True)
         with np.errstate(invalid="ignore", divide="ignore"):
-            along = np.where(length > 1e-3, chord / length, heading[:, first:])
-        out[:, first:] = along
+            out[:, first:] = np.where(length > 1e-3, chord / length, out[:, first:])
     return out
 
 
