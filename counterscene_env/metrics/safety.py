@@ -127,7 +127,7 @@ def _finite_difference_acceleration(scene: Scene) -> tuple[np.ndarray, np.ndarra
     stencil, ``(p_t - 2 p_{t-1} + p_{t-2}) / dt^2``), at every rollout step t. The first two
     samples read "now" (and the history step before it): braking in the first rollout step
     is an acceleration of the rollout, as the per-step ``info["hard_braking"]`` counts it
-    (docs/metrics.md, "HBR").
+    (docs/metrics.md, "Definitions").
 
     Returns:
         ``[N, T_roll, 2]`` m/s^2 (NaN where undefined) and ``[N, T_roll]`` bool validity.
@@ -154,7 +154,7 @@ def _travel_directions(scene: Scene) -> np.ndarray:
     moves at a slip angle to its heading, and a log's heading is a box annotation.
     Measured on the quickstart's junction turn at a steady 9.04 m/s: -4.04 m/s^2 against
     the heading a step early, -3.03 against the heading at the middle step, -0.01 along the
-    chord (docs/metrics.md, "HBR")."""
+    chord (docs/metrics.md, "Definitions")."""
     p, _, first = _stencils(scene)
     yaw = scene.yaws[:, scene.current_index : scene.num_steps - 1]
     out = np.stack([np.cos(yaw), np.sin(yaw)], -1)
