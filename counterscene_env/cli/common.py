@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 from counterscene_env.config import MAX_RUN_SEED, Scenario  # light: --help stays instant
 
@@ -13,7 +14,12 @@ SCENARIO_CHOICES = Scenario.values()
 
 def add_model_flag(p: argparse.ArgumentParser) -> None:
     """Add ``--model DIR`` (a world-model checkpoint directory; default: the shipped one)."""
-    p.add_argument("--model", default="default", help="model directory (default: shipped)")
+    p.add_argument(
+        "--model",
+        default="default",
+        help="model directory ('default', the default: the shipped model; ./default: a "
+        "directory of that name)",
+    )
 
 
 def add_json_flag(p: argparse.ArgumentParser, help: str = "print one JSON object") -> None:
@@ -78,9 +84,26 @@ def parse_overrides(items: list[str]) -> dict:
     return out
 
 
+def warn_shadowed_default(name: str | None, flag: str = "--model") -> None:
+    """Say on stderr that ``flag default`` loads the shipped model when the working directory
+    also holds a model directory ``default``, which it does not load (``checkpoint.model_dir``:
+    the name is never a guess), and how to name that one."""
+    from counterscene_env.world_model.checkpoint import shadowed_default
+
+    if shadowed_default(name) is not None:
+        print(
+            f"counterscene: warning: {flag} default is the shipped model, not the model "
+            f"directory ./default here; write {flag} ./default for that one",
+            file=sys.stderr,
+        )
+
+
 def load_model(name: str):
+    """The model ``--model name`` names (``checkpoint.model_dir``); a checkpoint that does not
+    load raises ``ValueError`` with the reason (one line on stderr, no traceback)."""
     from counterscene_env.world_model.checkpoint import CheckpointError, load_model
 
+    warn_shadowed_default(name)
     try:
         return load_model(name)
     except CheckpointError as exc:

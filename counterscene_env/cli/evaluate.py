@@ -113,11 +113,11 @@ def _evaluation_scenes(args: argparse.Namespace) -> list:
                 seed = scenes[-1].metadata["seed"] + 1
                 bar.update(1)
         return scenes
-    if args.data:  # the first --scenes of each dataset
-        from counterscene_env.scene.reading import iter_scenes
+    if args.data:  # the first --scenes of each dataset (never logs to unpickle: --scenarionet)
+        from counterscene_env.scene.reading import iter_dataset
 
         n = args.scenes or DEFAULT_EVAL_SCENES
-        return [s for d in args.data for s, _ in itertools.islice(iter_scenes(Path(d)), n)]
+        return [s for d in args.data for s, _ in itertools.islice(iter_dataset(Path(d)), n)]
     return _real_scenes(args)
 
 
@@ -177,6 +177,7 @@ def _cmd_evaluate_model(args: argparse.Namespace) -> int:
         if args.scenario
         else str(args.scenarionet or args.commonroad or args.data)
     )
+    result["checkpoint"] = _model_record(args.model, model)
     if args.json:
         print(json.dumps(json_safe(result)))
         return 0
@@ -184,9 +185,41 @@ def _cmd_evaluate_model(args: argparse.Namespace) -> int:
     return 0
 
 
+def _model_record(given: str, model) -> dict:
+    """Which model was evaluated: ``given`` (``--model`` as typed), the ``directory`` it
+    resolved to (absolute; ``checkpoint.model_dir``), its ``preset``, and its training
+    provenance from its ``config.json``: ``training_step`` (steps of its own run), ``init``
+    (the model a fine-tune started from, else None) and ``training_data`` (its --data)."""
+    from counterscene_env.world_model.checkpoint import model_dir
+
+    info = getattr(model, "training_info", {}) or {}
+    return {
+        "given": given,
+        "directory": str(model_dir(given).resolve()),
+        "preset": getattr(model, "preset", None),
+        "training_step": info.get("step"),
+        "init": info.get("init"),
+        "training_data": info.get("data"),
+    }
+
+
+def _model_line(record: dict) -> str:
+    """``model default: /abs/dir (preset default, 1500 training steps, fine-tuned from
+    default)``: the text report's first line."""
+    facts = [f"preset {record['preset']}"] if record["preset"] else []
+    if record["training_step"] is not None:
+        facts.append(f"{record['training_step']} training steps")
+    if record["init"] is not None:
+        facts.append(f"fine-tuned from {record['init']}")
+    tail = f" ({', '.join(facts)})" if facts else ""
+    return f"model {record['given']}: {record['directory']}{tail}"
+
+
 def _print_evaluation(result: dict) -> None:
-    """The text report of ``evaluate-model``: the pooled table, then ADE per speed bin."""
+    """The text report of ``evaluate-model``: the model, the pooled table, then ADE per speed
+    bin."""
     skipped = result["skipped_scenes"]
+    print(_model_line(result["checkpoint"]))
     print(
         f"{result['scenes']} scenes"
         + (f" ({skipped} skipped: log ends at now)" if skipped else "")
@@ -215,7 +248,9 @@ def _print_evaluation(result: dict) -> None:
         + ", ".join(f"{h} {fmt(overlap[h])}" for h in hz)
     )
     windows = f", {result['windows']} windows" if result.get("every_s") else ""
-    print(f"ADE / constant velocity's [95 % interval over scenes{windows}]:")
+    # One scene has no spread over scenes to resample: no interval (scene_bootstrap.py).
+    band = "one scene: no interval" if result["scenes"] < 2 else "95 % interval over scenes"
+    print(f"ADE / constant velocity's [{band}{windows}]:")
     for name, block in [("all", result), *result["by_speed"].items()]:
         cells = []
         for h in hz:

@@ -11,6 +11,7 @@ from counterscene_env.cli.common import (
     add_seed_flag,
     json_safe,
     parse_overrides,
+    warn_shadowed_default,
 )
 
 
@@ -57,7 +58,10 @@ def add_train(sub) -> None:
         help="override a model config field of the preset (repeatable), e.g. --set d_model=96",
     )
     tr.add_argument(
-        "--init", metavar="DIR", help="start from this model's weights ('default': shipped)"
+        "--init",
+        metavar="DIR",
+        help="start from this model's weights ('default': the shipped model; ./default: a "
+        "directory of that name)",
     )
     tr.add_argument(
         "--off-lane-weight",
@@ -137,6 +141,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from counterscene_env.world_model.train_config import TrainConfig
 
     overrides = parse_overrides(args.set)
+    warn_shadowed_default(args.init, "--init")
     ModelConfig.from_mapping({**preset(args.preset).to_dict(), **overrides})  # validate early
     for d in args.data:
         if not Path(d).exists():

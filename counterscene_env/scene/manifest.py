@@ -12,6 +12,7 @@ from __future__ import annotations
 import importlib.metadata
 import json
 import os
+import re
 from pathlib import Path
 
 from counterscene_env.scene.shards import ShardError
@@ -75,8 +76,43 @@ def reusable_blocks(out: Path, manifest: dict, target: int | None) -> dict[int, 
 _DEFAULTS_BEFORE = {"yielding": "highway-env"}
 
 
+#: What a build leaves in its directory before its first manifest (a stop between the first
+#: shard and the manifest naming it): the shard, or a shard or manifest half written.
+_BUILD_LEFTOVER = re.compile(
+    r"shard-\d{5,}\.npz|\.shard-\d{5,}\.npz\.\d+\.tmp|\.manifest\.json\.tmp"
+)
+#: Files of a world-model training run (``world_model/run_dir.py``), named in a refusal.
+_MODEL_RUN_FILES = ("model.safetensors", "config.json", "last.pt", "log.jsonl")
+#: Entries a refusal lists before "and N more".
+_LISTED = 4
+
+
+def refuse_foreign_out(out: Path) -> None:
+    """Raise ``ValueError`` if ``out``, which holds no manifest, holds anything a build did not
+    leave there (:data:`_BUILD_LEFTOVER`): a new dataset would mix its shards into someone
+    else's files (a trained model, logs, another program's output). The message names the
+    directory and what it holds; nothing is written. An empty directory, or one holding only
+    the first shard of a build stopped before its manifest, is a dataset's to start."""
+    if not out.is_dir():
+        return
+    foreign = sorted(p.name for p in out.iterdir() if not _BUILD_LEFTOVER.fullmatch(p.name))
+    if not foreign:
+        return
+    model = [name for name in _MODEL_RUN_FILES if name in foreign]
+    if model:
+        what = f"a trained world model ({', '.join(model)})"
+    else:
+        more = len(foreign) - _LISTED
+        what = ", ".join(foreign[:_LISTED]) + (f" and {more} more" if more > 0 else "")
+    raise ValueError(
+        f"--out {out} is not a dataset directory (no {MANIFEST}) and is not empty: it holds "
+        f"{what}. Nothing was written; give a new or empty directory for the dataset"
+    )
+
+
 def open_manifest(out: Path, params: dict) -> dict:
-    """The manifest in ``out`` (checked against ``params``), or a fresh one for a new dataset."""
+    """The manifest in ``out`` (checked against ``params``), or a fresh one for a new dataset
+    in a new, empty or :func:`refuse_foreign_out`-clean directory."""
     if (out / MANIFEST).is_file():
         manifest = read_manifest(out)
         # A key the manifest predates had its default then (datasets made before it resume).
@@ -86,6 +122,7 @@ def open_manifest(out: Path, params: dict) -> dict:
             detail = ", ".join(f"{k}: {a!r} there, {b!r} asked" for k, (a, b) in mismatch.items())
             raise ValueError(f"{out} holds a different dataset ({detail}); use another --out")
         return manifest
+    refuse_foreign_out(out)
     return {
         "format": DATASET_FORMAT,
         "version": DATASET_VERSION,

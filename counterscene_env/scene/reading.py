@@ -15,7 +15,7 @@ from counterscene_env.scene.core import Scene, SceneTooShort
 from counterscene_env.scene.manifest import MANIFEST, read_manifest, shard_paths
 from counterscene_env.scene.shards import load_scenes
 
-__all__ = ["iter_scenes"]
+__all__ = ["iter_dataset", "iter_scenarionet", "iter_scenes"]
 
 
 def iter_scenes(
@@ -28,12 +28,8 @@ def iter_scenes(
     then skipped; without it such a log raises :class:`SceneTooShort`.
     """
     path = Path(path)
-    from counterscene_env.scene.scenarionet import load_scenarionet, scenarionet_files
-
-    if path.is_dir() and not (path / MANIFEST).is_file():
-        files = scenarionet_files(path)  # raises if there are none
-    elif path.suffix == ".pkl":
-        files = [path]
+    if (path.is_dir() and not (path / MANIFEST).is_file()) or path.suffix == ".pkl":
+        yield from iter_scenarionet(path, on_short)
     elif path.is_file() and path.suffix != ".npz":
         hint = {
             ".xml": "CommonRoad scenarios are read by converting them: counterscene generate "
@@ -43,9 +39,18 @@ def iter_scenes(
         raise ValueError(f"{path}: not a file of scenes; {hint}")
     else:
         yield from _iter_stored(path)
-        return
 
-    for f in files:
+
+def iter_scenarionet(
+    path: str | os.PathLike, on_short: Callable[[str], None] | None = None
+) -> Iterator[tuple[Scene, float]]:
+    """Yield (scene, seconds it took to import) from a ScenarioNet ``.pkl`` file or a directory
+    of them only (``scenarionet:DIR``, ``--scenarionet DIR``): a CounterScene dataset
+    directory or shard is refused by ``scenarionet_files``, naming it, not read as logs.
+    ``on_short``: as :func:`iter_scenes`'s."""
+    from counterscene_env.scene.scenarionet import load_scenarionet, scenarionet_files
+
+    for f in scenarionet_files(path):  # raises if there are none
         start = time.perf_counter()
         try:
             scene = load_scenarionet(f)
@@ -55,6 +60,14 @@ def iter_scenes(
             on_short(f.name)
             continue
         yield scene, time.perf_counter() - start
+
+
+def iter_dataset(path: str | os.PathLike) -> Iterator[tuple[Scene, float]]:
+    """Yield (scene, seconds it took to generate) from a dataset directory or one of its shard
+    files only, as ``--data`` names them: a ScenarioNet ``.pkl`` or a directory of them is
+    refused with a :class:`~counterscene_env.scene.shards.ShardError` naming the path, never
+    read (its own flag reads it)."""
+    yield from _iter_stored(Path(path))
 
 
 def _iter_stored(path: Path) -> Iterator[tuple[Scene, float]]:

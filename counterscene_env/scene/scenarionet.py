@@ -94,6 +94,25 @@ def read_scenario_description(path: str | os.PathLike) -> dict:
 INDEX_FILES = ("dataset_summary.pkl", "dataset_mapping.pkl")
 
 
+def _refuse_counterscene_data(path: Path) -> None:
+    """Raise :class:`ScenarioNetError` naming ``path`` if it is a CounterScene dataset
+    directory (it holds a ``manifest.json``) or shard (``.npz``), which ``counterscene
+    generate`` wrote: those are read as datasets, and a ScenarioNet source given one would
+    otherwise read it as if it were logs (or find no ``.pkl`` in it)."""
+    from counterscene_env.scene.manifest import MANIFEST
+
+    if path.is_dir() and (path / MANIFEST).is_file():
+        what = f"a CounterScene dataset directory (its {MANIFEST}: made by counterscene generate)"
+    elif path.is_file() and path.suffix == ".npz":
+        what = "a CounterScene shard file (.npz: made by counterscene generate)"
+    else:
+        return
+    raise ScenarioNetError(
+        f"{path} is {what}, not ScenarioNet data: it is read as a dataset as it is (--data "
+        f"{path}, or --scenario {path} without 'scenarionet:')"
+    )
+
+
 def scenarionet_files(path: str | os.PathLike) -> list[Path]:
     """The scenario files of a ScenarioNet ``.pkl`` file or dataset directory.
 
@@ -104,9 +123,11 @@ def scenarionet_files(path: str | os.PathLike) -> list[Path]:
 
     Raises:
         FileNotFoundError: no scenario file, or one the mapping lists is missing.
-        ScenarioNetError: the mapping is not a dict of file names to directories.
+        ScenarioNetError: the mapping is not a dict of file names to directories, or ``path``
+            is a CounterScene dataset directory or shard (:func:`_refuse_counterscene_data`).
     """
     path = Path(path)
+    _refuse_counterscene_data(path)
     if not path.is_dir():
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such ScenarioNet file or directory")

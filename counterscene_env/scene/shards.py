@@ -112,6 +112,7 @@ def load_scenes(path: str | os.PathLike) -> list[Scene]:
         )
     if not path.is_file():
         raise ShardError(f"{path}: no such shard file")
+    _refuse_other_files(path)
     try:
         with np.load(path, allow_pickle=False) as data:
             header = _read_json(data, "format", path)
@@ -146,6 +147,33 @@ def load_scenes(path: str | os.PathLike) -> list[Scene]:
         raise ShardError(
             f"{path}: truncated or corrupt shard ({type(exc).__name__}: {exc})"
         ) from exc
+
+
+#: The first bytes of a zip archive (a shard is one: ``numpy.savez_compressed``), and of a
+#: pickle of protocol 2 and later (the PROTO opcode, then the protocol).
+_ZIP_MAGIC = b"PK"
+_PICKLE_MAGIC = (b"\x80\x02", b"\x80\x03", b"\x80\x04", b"\x80\x05")
+
+
+def _refuse_other_files(path: Path) -> None:
+    """Raise :class:`ShardError` naming ``path`` when it is a pickle (a ScenarioNet log, say),
+    or a file neither a zip nor named ``.npz``: not a shard, whatever numpy would say of it
+    (its message on a pickle is how to load it unsafely). Nothing is unpickled; a damaged
+    ``.npz`` is left to the reader's "truncated or corrupt"."""
+    with path.open("rb") as f:
+        head = f.read(2)
+    if head in _PICKLE_MAGIC:
+        raise ShardError(
+            f"{path}: a Python pickle, not a CounterScene dataset directory or shard .npz (not "
+            "unpickled). ScenarioNet .pkl logs are named as such (evaluate-model --scenarionet, "
+            "stress --scenario scenarionet:DIR) or converted into a dataset: counterscene "
+            "generate --from-scenarionet DIR --out DATASET"
+        )
+    if head != _ZIP_MAGIC and path.suffix != ".npz":
+        raise ShardError(
+            f"{path}: not a CounterScene dataset directory or shard .npz (give a directory made "
+            "by counterscene generate, or one of its shard files)"
+        )
 
 
 def _read_scene(data, i: int, path: Path) -> Scene:

@@ -112,12 +112,15 @@ def stored_scenes(spec: str) -> Iterator[Scene]:
 
         scenes: Iterator[Scene] = iter_commonroad(spec_path(spec), report=report)
     else:
-        from counterscene_env.scene.reading import iter_scenes
+        from counterscene_env.scene.reading import iter_scenarionet, iter_scenes
 
         def count(_name: str) -> None:
             skipped[TOO_SHORT] += 1
 
-        scenes = (scene for scene, _ in iter_scenes(spec_path(spec), on_short=count))
+        # scenarionet:DIR reads logs only: a dataset under that prefix is refused, not read as
+        # if it were one (a bare path may be either).
+        read = iter_scenarionet if spec.startswith(SCENARIONET_PREFIX) else iter_scenes
+        scenes = (scene for scene, _ in read(spec_path(spec), on_short=count))
     SKIPPED[spec] = skipped
     for scene in scenes:
         reason = unplayable_reason(scene)

@@ -10,6 +10,11 @@
 Weights are safetensors only: loading never unpickles anything. :func:`load_model` checks the
 files, the format and version, the architecture keys, every tensor name and shape, and raises
 :class:`CheckpointError` with a message naming the problem.
+
+Model names (:func:`model_dir`): ``None`` and the string ``"default"`` always mean the model
+shipped in the package, whatever the working directory holds; every other name, and a
+``Path("default")``, is a directory. A directory named ``default`` in the working directory is
+reached as ``"./default"`` (:func:`shadowed_default` finds the case, for the CLI's warning).
 """
 
 from __future__ import annotations
@@ -32,6 +37,8 @@ VERSION = 1
 WEIGHTS = "model.safetensors"
 CONFIG = "config.json"
 DEFAULT_MODEL_DIR = Path(__file__).parent / "weights" / "default"
+#: The model name that always means :data:`DEFAULT_MODEL_DIR` (module docstring).
+DEFAULT_MODEL = "default"
 
 
 class CheckpointError(ValueError):
@@ -109,6 +116,26 @@ def read_config(directory: str | os.PathLike) -> dict[str, Any]:
     return meta
 
 
+def model_dir(name: str | os.PathLike | None) -> Path:
+    """The checkpoint directory ``name`` stands for: :data:`DEFAULT_MODEL_DIR` for ``None`` and
+    the string ``"default"`` (even when the working directory holds a ``default`` directory:
+    write ``"./default"`` for that), else ``name`` as a path."""
+    # A str compare only: Path("default") == "default" is False, so a Path is always a path.
+    if name is None or (isinstance(name, str) and name == DEFAULT_MODEL):
+        return DEFAULT_MODEL_DIR
+    return Path(name)
+
+
+def shadowed_default(name: str | os.PathLike | None) -> Path | None:
+    """``Path("default")`` when ``name`` is the string ``"default"`` and the working directory
+    holds a model directory of that name (a ``config.json`` or ``model.safetensors`` in it),
+    which ``name`` does not load (:func:`model_dir`); else ``None``."""
+    if not (isinstance(name, str) and name == DEFAULT_MODEL):
+        return None
+    here = Path(DEFAULT_MODEL)
+    return here if any((here / f).is_file() for f in (CONFIG, WEIGHTS)) else None
+
+
 _SHARED: dict[str, WorldModel] = {}
 
 
@@ -122,13 +149,14 @@ def shared_model(name: str = "default") -> WorldModel:
 def load_model(
     directory: str | os.PathLike | None = "default", device: str | torch.device = "cpu"
 ) -> WorldModel:
-    """Load a checkpoint directory (``"default"`` or ``None``: the model shipped in the package).
+    """Load a checkpoint directory (``"default"`` or ``None``: the model shipped in the package,
+    :func:`model_dir`).
 
     The model comes back in eval mode. Raises :class:`CheckpointError` on a missing file, a
     foreign or newer format, an unknown architecture key, a file that is not safetensors,
     missing or unexpected tensors, or a shape mismatch.
     """
-    path = DEFAULT_MODEL_DIR if directory in (None, "default") else Path(directory)
+    path = model_dir(directory)
     meta = read_config(path)
     config = _architecture(path, meta)
     normalization = _normalization(path, meta)

@@ -39,8 +39,9 @@ later in the log; their FDE at 3 s says whether the model keeps a parked car par
 
 Intervals (``ci95`` beside each figure, ``*_ci95`` beside ratios): 95 % percentile bootstrap
 over scenes, :data:`BOOTSTRAP_RESAMPLES` resamples seeded by ``seed``. The windows of one scene
-(and the agents of one window) are correlated, so the scene is the unit resampled. Agent counts
-are agent-windows.
+(and the agents of one window) are correlated, so the scene is the unit resampled, and a figure
+measured in one scene only (however many windows) has no interval: ``None`` (JSON null), as
+one scene has no spread to resample (``scene_bootstrap.py``). Agent counts are agent-windows.
 
 Short logs: future frames beyond the log are invalid and simply not scored, and history before
 the log's first frame is padded by the window. A scene whose log ends at its "now" step has

@@ -16,7 +16,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from counterscene_env.world_model.checkpoint import CONFIG, DEFAULT_MODEL_DIR, WEIGHTS
+from counterscene_env.world_model.checkpoint import CONFIG, WEIGHTS, model_dir
 from counterscene_env.world_model.train_config import TrainConfig, plain_settings, same_path
 
 STATE_FILE = "last.pt"
@@ -110,7 +110,7 @@ def check_fresh_out(out: Path, init: str | None) -> None:
     found = [name for name in MODEL_FILES if (out / name).exists()]
     if not found:
         return
-    start = None if init is None else DEFAULT_MODEL_DIR if init == "default" else Path(init)
+    start = None if init is None else model_dir(init)
     its = (
         " (it is this run's --init)"
         if start is not None and same_path(start) == same_path(out)

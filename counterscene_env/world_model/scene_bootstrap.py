@@ -2,7 +2,11 @@
 statistics of ``counterscene evaluate-model``, ``world_model/evaluate.py``).
 
 The windows of one scene (its start times) and the agents of one window are correlated, so a
-figure is kept as per-scene sums and counts, and the scene is the unit resampled.
+figure is kept as per-scene sums and counts, and the scene is the unit resampled. A figure
+measured in fewer than :data:`MIN_SCENES` scenes has no interval (``None``, JSON null), as
+``report/stats.py``'s ``mean`` has none for fewer than two episodes: every resample of one
+scene is that scene, and the interval would be the figure itself, ``[x, x]``, claiming a
+certainty that one scene cannot give.
 """
 
 from __future__ import annotations
@@ -10,6 +14,9 @@ from __future__ import annotations
 from collections import defaultdict
 
 import numpy as np
+
+#: Scenes a figure needs measurements in to have an interval (one has no spread to resample).
+MIN_SCENES = 2
 
 
 class SceneSums:
@@ -43,7 +50,8 @@ class SceneSums:
 class SceneBootstrap:
     """Pooled figures (sum over scenes of sums / sum of counts) and their 95 % intervals from
     a bootstrap over scenes (``resamples`` draws of the scenes with replacement, the same draws
-    for every figure, so ratios between figures are paired)."""
+    for every figure, so ratios between figures are paired). A figure (or either side of a
+    ratio) measured in fewer than :data:`MIN_SCENES` scenes has no interval: ``None``."""
 
     def __init__(self, sums: SceneSums, scenes: int, resamples: int, seed: int) -> None:
         self.sums, self.scenes = sums, scenes
@@ -66,7 +74,7 @@ class SceneBootstrap:
 
     def _resample(self, name: str) -> np.ndarray | None:
         s, n = self._stats(name)
-        if self.draws is None or not n.sum():
+        if self.draws is None or np.count_nonzero(n) < MIN_SCENES:
             return None
         ns = n[self.draws].sum(1)
         with np.errstate(invalid="ignore", divide="ignore"):
