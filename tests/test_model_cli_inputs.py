@@ -5,6 +5,7 @@ no interval from one scene, and inputs of the wrong kind refused by name."""
 from __future__ import annotations
 
 import json
+import math
 import pickle
 
 import pytest
@@ -206,3 +207,25 @@ def test_scenarionet_spec_refuses_a_dataset_but_a_bare_path_reads_it(dataset):
     with pytest.raises(ValueError, match="is a CounterScene dataset directory"):
         list(stored_scenes(SCENARIONET_PREFIX + str(dataset)))
     assert len(list(stored_scenes(str(dataset)))) == 1
+
+
+def test_off_road_rates_count_only_points_inside_a_cropped_maps_extent(generated):
+    """A real map is a crop: a predicted or logged point beyond its extent is neither on nor
+    off its roads, so ``evaluate-model``'s off-road rates leave it out (as the metrics' ORR
+    does). A crop that holds none of the scene gives no rate at all, not 0."""
+    import dataclasses
+
+    import shapely
+
+    from counterscene_env.world_model.checkpoint import load_model
+    from counterscene_env.world_model.evaluate import evaluate_model
+
+    scene = generated["merge"]
+    far = dataclasses.replace(scene.road, extent=shapely.box(5e3, 5e3, 5e3 + 10, 5e3 + 10))
+    model = load_model("default")
+    whole = evaluate_model(model, [scene], num_samples=1, seed=0)
+    nowhere = evaluate_model(model, [scene.replace(road=far)], num_samples=1, seed=0)
+    assert whole["log_offroad_rate"] is not None and whole["model"]["offroad_rate"] is not None
+    assert nowhere["log_offroad_rate"] is None or math.isnan(nowhere["log_offroad_rate"])
+    rate = nowhere["model"]["offroad_rate"]
+    assert rate is None or math.isnan(rate)

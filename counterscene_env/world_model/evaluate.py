@@ -19,7 +19,8 @@ its nearest vehicles, ``num_agents`` within ``agent_radius``) over its horizon,
   docs/world_model.md).
 - ``offroad_rate``: fraction of predicted centre positions (all samples, valid agents, all
   horizon steps) off the road by the road's own test (``RoadMap.off_road``): outside the
-  drivable area and inside the map's extent (a real map is a crop; beyond it nothing is known).
+  drivable area and inside the map's extent (a real map is a crop; beyond it nothing is known,
+  so such positions are out of the rate altogether, ``RoadMap.judged``).
 
 - ``sample_overlap[h]``: the share of windows whose first sample puts two agents' boxes on
   each other within steps 1..h where the log's boxes do not overlap (``overlap.new_overlaps``):
@@ -277,7 +278,10 @@ def _score_scene(
     gt, p, c = tracks
     err_p, err_c = np.linalg.norm(p - gt, axis=-1), np.linalg.norm(c - gt, axis=-1)
     # Off-road is judged once per window for every agent; the groups then sum their subsets.
-    off_p, off_c, off_log = (road.off_road(from_frame(xy, origin)) for xy in (p, c, gt))
+    # A point beyond a cropped map's extent is neither on nor off its roads: out of the rate.
+    world = [from_frame(xy, origin) for xy in (p, c, gt)]
+    off_p, off_c, off_log = (road.off_road(xy) for xy in world)
+    in_p, in_c, in_log = (road.judged(xy) for xy in world)
     members = [("all", np.ones(len(ok), bool)), ("still", still)]
     members += [(name, bins == i) for i, name in enumerate(SPEED_BINS)]
     for name, sel in members:
@@ -287,8 +291,9 @@ def _score_scene(
         agents[name] += int(sel.sum())
         _add_errors(sums, f"{name}/model", scene, hz, err_p[:, sel], o)
         _add_errors(sums, f"{name}/cv", scene, hz, err_c[:, sel], o)
-        for who, off in (("model", off_p), ("cv", off_c), ("log", off_log[None])):
-            mask = np.broadcast_to(o, off[:, sel].shape)
+        judged = (("model", off_p, in_p), ("cv", off_c, in_c), ("log", off_log[None], in_log[None]))
+        for who, off, seen in judged:
+            mask = np.broadcast_to(o, off[:, sel].shape) & seen[:, sel]
             sums.count(f"{name}/{who}/off", scene, int((off[:, sel] & mask).sum()), int(mask.sum()))
 
 
