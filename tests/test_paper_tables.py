@@ -117,6 +117,57 @@ def test_two_log_folders_of_one_name_are_refused_before_anything_runs(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def _row_on_disk(out, name: str, episodes: int) -> None:
+    """Row ``name`` of ``paper-tables --scenario merge --episodes 2`` with ``episodes``
+    synthetic episodes in ``out/merge/name/``, as a stopped run leaves it."""
+    from counterscene_env.stress import EpisodeLog, run_identity
+
+    config = paper.row_config("merge", paper.ROWS[name], 2, 300000, "idm", 4)
+    log = EpisodeLog(out / "merge" / name, run_identity(config, "default"))
+    scalars = {"cr": 0.0, "cr_ego_adversary": 0.0, "hbr_ego": 0.0, "orr": 0.0}
+    scalars |= {"min_ttc": None, "min_clearance_adversary": 5.0, "cr_non_ego_new": 0.0}
+    log.append(
+        [
+            {**_record(0.0, 1.0), **scalars, "episode": i, "seed": 300000 + i,
+             "scenario_id": f"merge/seed={i}"}
+            for i in range(episodes)
+        ]
+    )  # fmt: skip
+
+
+def test_tables_only_names_the_rows_never_run_and_how_to_run_them(tmp_path, capsys):
+    """--tables-only before every row ran: the rows with no episode are named in tables.md,
+    tables.json and on stderr with the command that runs them (they were left out in
+    silence), and a missing reference row says what the others are paired with instead."""
+    out = tmp_path / "tables"
+    _row_on_disk(out, "unguided", 2)
+    _row_on_disk(out, "ttc", 1)
+    args = ["paper-tables", "--scenario", "merge", "--tables", "main", "--episodes", "2"]
+    args += ["--out", str(out), "--quiet"]
+    assert main([*args, "--tables-only"]) == 0
+    captured = capsys.readouterr()
+    run = "counterscene " + " ".join(args)
+    md = (out / "tables.md").read_text()
+    assert captured.out == md
+    assert "**Rows not run yet**" in md
+    assert (
+        "- merge, main table: CounterScene (causal, full guidance) (`merge/counterscene/`), "
+        "random selector (`merge/random/`), distance selector (`merge/distance/`); the "
+        "table's reference row CounterScene (causal, full guidance) is among them, so its rows "
+        "are paired with world model, unguided instead"
+    ) in md
+    assert f"Run them with: `{run}`" in md
+    assert (
+        "rows not run yet, left out of the tables: merge/counterscene, merge/distance, "
+        f"merge/random; run them with: {run}"
+    ) in captured.err
+    doc = json.loads((out / "tables.json").read_text())
+    assert doc["missing_rows"] == {"merge": {"main": ["counterscene", "random", "distance"]}}
+    assert list(doc["tables"]["merge"]["main"]) == ["unguided", "ttc"]
+    assert main([*args, "--tables-only", "--json"]) == 0
+    assert "merge/counterscene" in capsys.readouterr().err  # --json hides nothing
+
+
 @pytest.mark.slow
 def test_paper_tables_on_stored_logs_resumes_and_writes_timings_apart(generated, tmp_path, capsys):
     logs = tmp_path / "logs.npz"

@@ -297,6 +297,65 @@ def test_a_python_planners_run_is_reported_as_its_own_not_the_configs(generated,
         run_episodes(model, config, planner_factory=Scalar, progress=False)
 
 
+def _files(directory: Path) -> dict[str, bytes]:
+    """Every file under ``directory`` with its bytes."""
+    return {
+        str(p.relative_to(directory)): p.read_bytes()
+        for p in sorted(directory.rglob("*"))
+        if p.is_file()
+    }
+
+
+def test_a_report_stopped_while_filming_leaves_the_directory_as_it_was(
+    template, tmp_path, monkeypatch
+):
+    """Ctrl-C (or a crash) while the worst episodes are re-simulated: no command.txt, plot
+    or half a report appears; it used to leave command.txt and the plots behind."""
+    run = write_run(tmp_path / "run", mixed(template))
+    before = _files(run)
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("counterscene_env.report.replay.replay_batch", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        write_report(run, videos=2, progress=False)
+    assert _files(run) == before
+    # An earlier report stays whole too: the rebuilt one never half-replaces it.
+    write_report(run, videos=0, progress=False)
+    # One more episode (a resumed run): the report of 9 episodes would differ from the last.
+    identity = json.loads((run / "run.json").read_text())
+    EpisodeLog(run, identity, resume=True).append([episode(template, 8, cr=1.0, min_ttc=0.0)])
+    earlier = _files(run)
+    with pytest.raises(KeyboardInterrupt):
+        write_report(run, videos=2, progress=False)
+    assert _files(run) == earlier
+
+
+def test_metrics_json_keys_and_its_two_ttc_figures_are_documented(template, tmp_path):
+    """Every key of metrics.json is described in docs/reports.md, "metrics.json"; the two TTC
+    figures are what it says: the mean over the episodes with a projected conflict, and
+    overall's median over every episode, no conflict (inf) included."""
+    ttc = [1.0, 3.0, float("inf"), float("inf"), float("inf")]
+    records = [episode(template, i, min_ttc=t) for i, t in enumerate(ttc)]
+    summary = json.loads((write_run(tmp_path / "run", records) / "metrics.json").read_text())
+    assert summary["mean_min_ttc"] == 2.0 and summary["episodes_without_ttc_conflict"] == 3
+    assert summary["overall"]["min_ttc"] is None  # the median is inf: written as null
+    records[2]["min_ttc"] = records[3]["min_ttc"] = 0.5
+    summary = json.loads((write_run(tmp_path / "run2", records) / "metrics.json").read_text())
+    assert summary["overall"]["min_ttc"] == 1.0 and summary["mean_min_ttc"] == 1.25
+    docs = (Path(__file__).parents[1] / "docs" / "reports.md").read_text()
+    section = docs[docs.index("## metrics.json") :]
+    section = section[: section.index("\n## ", 1)]
+    undocumented = [k for k in summary if f"`{k}`" not in section]
+    undocumented += [k for k in summary["overall"] if k not in section]
+    assert not undocumented, f"metrics.json keys missing from docs/reports.md: {undocumented}"
+    mean_row = next(line for line in section.splitlines() if line.startswith("| `mean_min_ttc`"))
+    assert "mean over the episodes with a projected conflict" in mean_row
+    median_row = next(line for line in section.splitlines() if "`overall.min_ttc`" in line[:20])
+    assert "median over every episode" in median_row and "inf included" in median_row
+
+
 # ---------------------------------------------------------------------- compare
 
 
@@ -429,6 +488,55 @@ def test_compare_runs_without_shared_episodes_say_so(template, tmp_path):
     assert "b: no episode in common with a" in render(document(c))
 
 
+def test_compare_says_a_run_is_unfinished_in_every_output(template, tmp_path, capsys):
+    """A stopped run in a comparison is named at the top of the text, the markdown and the
+    JSON, with how many of its episodes ran; it used to be compared in silence."""
+    a = write_run(tmp_path / "a", mixed(template))
+    b = write_run(tmp_path / "b", mixed(template)[:3], guidance="none")
+    summary = json.loads((b / "metrics.json").read_text())
+    summary.update(complete=False, episodes_requested=20)  # as a stopped run's summary says
+    (b / "metrics.json").write_text(json.dumps(summary))
+    warning = "run b (guidance=none) is unfinished: 3 of 20 episodes"
+    assert main(["compare", str(a), str(b), "--out", str(tmp_path / "cmp")]) == 0
+    text = capsys.readouterr().out
+    assert f"Warning: {warning}" in text.split("| metric |")[0]  # above the table
+    assert "b (guidance=none): " in text and "3 of 20 episodes (unfinished)" in text
+    assert warning in (tmp_path / "cmp" / "compare.md").read_text()
+    assert warning in (tmp_path / "cmp" / "compare.html").read_text()
+    assert main(["compare", str(a), str(b), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["warnings"] == [warning]
+    assert [(r["complete"], r["episodes"], r["episodes_requested"]) for r in out["runs"]] == [
+        (True, 8, 8),
+        (False, 3, 20),
+    ]
+    # Finished runs get no warning; one without metrics.json cannot say, and says so.
+    (b / "metrics.json").unlink()
+    c = compare_runs([a, b])
+    assert c.warnings == [
+        "run b (guidance=none) has no metrics.json: whether its 3 episodes are the whole run "
+        "is unknown"
+    ]
+    assert compare_runs([a, write_run(tmp_path / "c", mixed(template))]).warnings == []
+
+
+def test_compare_labels_show_defaults_not_none(template, tmp_path):
+    """run.json leaves rollouts, egos and min_future out at their defaults, and a
+    closed-loop None means the model's own default: labels spell both out (they read
+    ``rollouts=None``); a setting an older run.json lacks is its default, no difference."""
+    a = write_run(tmp_path / "a", mixed(template))
+    b = write_run(tmp_path / "b", mixed(template), rollouts=3)
+    assert compare_runs([a, b]).labels == ["a (rollouts=1)", "b (rollouts=3)"]
+    c = write_run(tmp_path / "c", mixed(template))
+    ident = json.loads((c / "run.json").read_text())
+    ident["sim"]["sampler"] = "ddim"
+    del ident["sim"]["memory_limit_gb"]  # a run from before the setting existed
+    (c / "run.json").write_text(json.dumps(ident))
+    assert compare_runs([a, c]).labels == ["a (sampler=model default)", "c (sampler=ddim)"]
+    labels = compare_runs([a, b, c]).labels
+    assert not any("None" in label for label in labels)
+
+
 # ---------------------------------------------------------------------- bad input
 
 
@@ -455,6 +563,75 @@ def test_bad_run_directories_are_refused_with_the_file_named(template, tmp_path,
     assert "episodes.jsonl" in capsys.readouterr().err
     assert main(["compare", str(empty), str(run)]) == 1
     assert "episodes.jsonl" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda r: r.update(cr="yes"), "line 3: field 'cr' is \"yes\", not a number or null"),
+        (lambda r: r.update(min_ttc=True), "line 3: field 'min_ttc' is true, not a number"),
+        (lambda r: r.update(seed="103"), "line 3: field 'seed' is \"103\", not a whole number"),
+        (
+            lambda r: r["per_second"]["2"].update(CR="x"),
+            "line 3: field per_second['2']['CR'] is \"x\", not a number or null",
+        ),
+        (lambda r: r.update(per_second=[1]), "line 3: field 'per_second' is [1], not an object"),
+    ],
+)
+def test_a_wrongly_typed_field_is_named_by_file_line_and_field(
+    template, tmp_path, capsys, change, message
+):
+    """A record with a field of the wrong type is refused as the file is read, naming the
+    file, the line and the field (it ended in numpy's "could not convert string to float"),
+    by report, compare and a resumed stress run alike, and the report writes nothing."""
+    run = write_run(tmp_path / "run", mixed(template))
+    lines = (run / "episodes.jsonl").read_text().splitlines()
+    bad = json.loads(lines[2])
+    change(bad)
+    lines[2] = json.dumps(bad)
+    (run / "episodes.jsonl").write_text("\n".join(lines) + "\n")
+    before = _files(run)
+    expected = f"{run / 'episodes.jsonl'}: {message}"
+    with pytest.raises(ValueError, match=re.escape(expected)):
+        load_run(run)
+    assert main(["report", str(run), "--videos", "0"]) == 1
+    assert expected in capsys.readouterr().err
+    assert _files(run) == before  # no command.txt, no plots
+    good = write_run(tmp_path / "good", mixed(template))
+    assert main(["compare", str(good), str(run)]) == 1
+    assert expected in capsys.readouterr().err
+    identity = json.loads((run / "run.json").read_text())
+    with pytest.raises(ValueError, match=re.escape(expected)):
+        EpisodeLog(run, identity, resume=True)
+
+
+def test_a_run_json_of_the_wrong_shape_is_named(template, tmp_path, capsys):
+    run = write_run(tmp_path / "run", mixed(template))
+    ident = json.loads((run / "run.json").read_text())
+    (run / "run.json").write_text(json.dumps({**ident, "sim": ["full"]}))
+    before = _files(run)
+    assert main(["report", str(run)]) == 1
+    assert f"{run / 'run.json'}: field 'sim' is ['full'], not an object" in capsys.readouterr().err
+    (run / "metrics.json").write_text("[]")
+    with pytest.raises(ValueError, match=re.escape(f"{run / 'metrics.json'}: list, not a JSON")):
+        load_run(run)
+    assert _files(run) == {**before, "metrics.json": b"[]"}
+
+
+def test_a_wrongly_typed_timing_or_python_record_is_named(template, tmp_path):
+    run = write_run(tmp_path / "run", mixed(template))
+    path = run / "episode_timings.jsonl"
+    lines = path.read_text().splitlines()
+    lines[1] = json.dumps({"episode": 1, "seconds": "fast", "replan_seconds": 0.4})
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=re.escape(f"{path}: line 2: field 'seconds' is")):
+        load_run(run)
+    # Records handed over from Python (not read from a file) are named by episode.
+    from counterscene_env.report.tables import EPISODE_METRICS
+
+    records = [episode(template, 0), episode(template, 1, cr="yes")]
+    with pytest.raises(ValueError, match="episode 1: field 'cr' is 'yes', not a number"):
+        EPISODE_METRICS["cr"].estimate(records)
 
 
 # ---------------------------------------------------------------------- videos of a real run

@@ -131,6 +131,25 @@ def test_stress_flags_reach_the_run(shard, capsys):
     assert sim["max_windows"] == 2 and sim["sampler"] is None  # not given: the default
 
 
+def test_the_summary_names_the_world_model_as_given_and_its_directory(shard, tmp_path, capsys):
+    """--json, metrics.json and the text report name the world model the run used: as given
+    (--model, as run.json has it) and the checkpoint directory it resolved to (neither
+    --json nor metrics.json named it)."""
+    from counterscene_env.world_model.checkpoint import DEFAULT_MODEL_DIR
+
+    out_dir = tmp_path / "run"
+    one = ["--scenario", shard, "--episodes", "1", "--duration", "0.5"]
+    code, out, _ = stress(capsys, *one, "--json", "--out", str(out_dir), "--videos", "0")
+    assert code == 0
+    model = {"given": "default", "directory": str(DEFAULT_MODEL_DIR.resolve())}
+    assert json.loads(out)["model"] == model
+    assert json.loads((out_dir / "metrics.json").read_text())["model"] == model
+    assert json.loads((out_dir / "run.json").read_text())["model"] == "default"
+    code, out, _ = stress(capsys, *one, "--model", str(DEFAULT_MODEL_DIR))
+    assert code == 0
+    assert f"world model: {DEFAULT_MODEL_DIR} ({DEFAULT_MODEL_DIR.resolve()})" in out
+
+
 def _files(directory) -> dict[str, bytes]:
     return {
         str(p.relative_to(directory)): p.read_bytes()

@@ -152,8 +152,11 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         run=not args.tables_only,
         tables=args.tables,
     )
+    run_command = "counterscene " + shlex.join(a for a in args.argv if a != "--tables-only")
     if not results:
-        raise ValueError(f"{args.out}: no episodes of these scenarios to tabulate")
+        raise ValueError(
+            f"{args.out}: no episodes of these scenarios to tabulate; run them with: {run_command}"
+        )
     seconds: dict[str, dict[str, float]] = {}
     for where, runs in results.items():  # compute time from the records (resumes included)
         for row, records in runs.items():
@@ -178,8 +181,10 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         "settings": base,
         "tables_only": args.tables_only,
         "tables": list(args.tables),
+        "run_command": run_command,
     }
     page = paper_document.write(args.out, built, meta, seconds)
+    _warn_missing(built["missing"], run_command)
     if args.json:
         import json
 
@@ -189,3 +194,16 @@ def _cmd_paper_tables(args: argparse.Namespace) -> int:
         return 0
     print(page.read_text(), end="")
     return 0
+
+
+def _warn_missing(missing: dict, run_command: str) -> None:
+    """Name the rows with no episode yet on stderr too (``--json`` and a page scrolled past
+    must not hide them); ``missing``: ``{scenario: {table: [row]}}``."""
+    if not missing:
+        return
+    rows = sorted({f"{w}/{r}" for w, ts in missing.items() for rs in ts.values() for r in rs})
+    print(
+        f"counterscene paper-tables: rows not run yet, left out of the tables: "
+        f"{', '.join(rows)}; run them with: {run_command}",
+        file=sys.stderr,
+    )

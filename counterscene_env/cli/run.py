@@ -210,7 +210,9 @@ def _cmd_stress(args: argparse.Namespace) -> int:
     if args.out:
         identity = run_identity(config, args.model, env_config)
         n = config.episodes
-        log = EpisodeLog(args.out, identity, args.resume, lambda r: summarize(r, config))
+        log = EpisodeLog(
+            args.out, identity, args.resume, lambda r: summarize(r, config, args.model)
+        )
         if len(log.records) > n:
             # Its summary would count n episodes and its report every recorded one.
             raise ValueError(
@@ -228,7 +230,7 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         records = _run_stress(args, config, model, env_config, log)
     except KeyboardInterrupt:
         return _stress_stopped(args, config, log, time.perf_counter() - start, before)
-    summary = summarize(records, config)
+    summary = summarize(records, config, args.model)
     times = timings(records, time.perf_counter() - start, len(records) - before, args.workers)
     if args.out:
         write_summary(args.out, summary)
@@ -355,7 +357,7 @@ def _stress_stopped(args: argparse.Namespace, config, log, wall: float, before: 
     elif not records:
         msg = f"no episode had finished: nothing was written to {log.dir}"
     else:
-        write_summary(log.dir, summarize(records, config))
+        write_summary(log.dir, summarize(records, config, args.model))
         ran = len(records) - before  # (--workers is unset if Ray was stopped as it started)
         write_timings(log.dir, timings(records, wall, ran, args.workers or 1))
         _write_report(args, videos=0)  # at once: the user is waiting; `report` adds videos

@@ -22,6 +22,8 @@ def print_stress(config, summary: dict, times: dict, scenario: str, workers: int
             else ""
         )
     )
+    if "model" in summary:
+        print(f"world model: {summary['model']['given']} ({summary['model']['directory']})")
     print(f"{'':8s}" + "".join(f"{k:>10s}" for k in ("ADE", "FDE", "ORR", "HBR", "CR")))
     for name, row in summary["horizons"].items():
         print(

@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from counterscene_env.metrics import json_safe
@@ -26,6 +26,7 @@ from counterscene_env.report.document import (
     Heading,
     Paragraph,
     Table,
+    count,
     fmt,
     interval,
     unit_label,
@@ -34,6 +35,7 @@ from counterscene_env.report.plots import compare_plot
 from counterscene_env.report.rundir import Run, load_run
 from counterscene_env.report.stats import Estimate, Paired
 from counterscene_env.report.tables import COMPARE_KEYS, EPISODE_METRICS
+from counterscene_env.stress.config import effective_identity
 
 #: Identity keys that do not change an episode's outcome (left out of labels).
 _NOT_SETTINGS = ("batch",)
@@ -63,12 +65,15 @@ class Comparison:
             the settings that differ between the runs).
         estimates: ``{key: [Estimate per run]}``.
         paired: one :class:`PairedRun` per run after the baseline.
+        warnings: one sentence per run that is unfinished (:func:`unfinished`), shown first
+            in every output.
     """
 
     runs: list[Run]
     labels: list[str]
     estimates: dict[str, list[Estimate]]
     paired: list[PairedRun]
+    warnings: list[str] = field(default_factory=list)
 
 
 def compare_runs(directories: Sequence[str | os.PathLike]) -> Comparison:
@@ -90,7 +95,9 @@ def compare_runs(directories: Sequence[str | os.PathLike]) -> Comparison:
     runs = [load_run(d) for d in directories]
     estimates = {k: [EPISODE_METRICS[k].estimate(r.records) for r in runs] for k in COMPARE_KEYS}
     paired = [_paired(runs[0], run, i) for i, run in enumerate(runs) if i]
-    return Comparison(runs, _labels(runs), estimates, paired)
+    labels = _labels(runs)
+    warnings = [w for label, r in zip(labels, runs, strict=True) if (w := unfinished(label, r))]
+    return Comparison(runs, labels, estimates, paired, warnings)
 
 
 def episode_key(record: dict) -> tuple:
@@ -112,23 +119,50 @@ def _paired(base: Run, run: Run, index: int) -> PairedRun:
     return PairedRun(index, len(pairs), out)
 
 
+#: How a label spells a closed-loop setting of None, and a setting a run did not record.
+MODEL_DEFAULT, NOT_RECORDED = "model default", "not recorded"
+
+
 def _flat(identity: dict) -> dict:
-    out = {k: v for k, v in identity.items() if k != "sim" and k not in _NOT_SETTINGS}
-    out.update(identity.get("sim", {}))
+    """A run's settings as one flat dict, each as it took effect: run.json leaves some out at
+    their default (``stress.config.effective_identity`` puts them back), and a closed-loop
+    setting of None is the world model's own default."""
+    ident = effective_identity(identity)
+    out = {k: v for k, v in ident.items() if k != "sim" and k not in _NOT_SETTINGS}
+    out.update({k: MODEL_DEFAULT if v is None else v for k, v in ident["sim"].items()})
     return out
 
 
 def _labels(runs: Sequence[Run]) -> list[str]:
     """Each run's directory name plus the settings in which the runs differ."""
     flats = [_flat(r.identity) for r in runs]
-    keys = sorted({k for f in flats for k in f if len({json.dumps(g.get(k)) for g in flats}) > 1})
+    every = {k for f in flats for k in f}
+    keys = sorted(
+        k
+        for k in every
+        if len({json.dumps(f.get(k, NOT_RECORDED), sort_keys=True) for f in flats}) > 1
+    )
     names = [r.name for r in runs]
     if len(set(names)) < len(names):  # same directory names: tell them apart by their paths
         names = [str(r.directory) for r in runs]
-    return [
-        name + (f" ({', '.join(f'{k}={_short(f.get(k))}' for k in keys)})" if keys else "")
-        for name, f in zip(names, flats, strict=True)
-    ]
+    settings = [", ".join(f"{k}={_short(f.get(k, NOT_RECORDED))}" for k in keys) for f in flats]
+    return [f"{n} ({s})" if keys else n for n, s in zip(names, settings, strict=True)]
+
+
+def unfinished(label: str, run: Run) -> str | None:
+    """A warning when ``run`` holds fewer episodes than it was started for (None: it holds
+    them all): ``"run LABEL is unfinished: 37 of 200 episodes"``, or that its
+    ``metrics.json``, which says how many were asked for, is missing."""
+    done = len(run.records)
+    if run.summary is None:
+        return (
+            f"run {label} has no metrics.json: whether its {count(done, 'episode')} are the "
+            "whole run is unknown"
+        )
+    planned = run.planned_episodes
+    if planned is not None and done < planned:
+        return f"run {label} is unfinished: {done} of {planned} episodes"
+    return None
 
 
 #: Longest setting value spelled out in a run's label; longer ones (a borrowed env config) are
@@ -173,11 +207,21 @@ def document(c: Comparison, figures: Sequence[Figure] = ()) -> list[Block]:
         )
         for k, ests in c.estimates.items()
     )
-    blocks: list[Block] = [
-        Heading("Comparison of stress runs", 1),
+    blocks: list[Block] = [Heading("Comparison of stress runs", 1)]
+    if c.warnings:
+        blocks.append(
+            Paragraph(
+                "Warning: "
+                + "; ".join(c.warnings)
+                + ". An unfinished run's figures cover its finished episodes only, and a "
+                "paired test the episodes both runs finished; its stress command rerun with "
+                "--resume (command.txt in its directory) finishes it."
+            )
+        )
+    blocks += [
         Bullets(
             tuple(
-                f"{label}: {r.directory}, {len(r.records)} episodes"
+                f"{label}: {r.directory}, {_episodes(r)}"
                 for label, r in zip(c.labels, c.runs, strict=True)
             )
         ),
@@ -214,11 +258,30 @@ def document(c: Comparison, figures: Sequence[Figure] = ()) -> list[Block]:
     return blocks
 
 
+def _episodes(run: Run) -> str:
+    """``"8 episodes"``, or ``"3 of 8 episodes (unfinished)"``."""
+    done, planned = len(run.records), run.planned_episodes
+    if planned is not None and done < planned:
+        return f"{done} of {count(planned, 'episode')} (unfinished)"
+    return count(done, "episode")
+
+
 def to_json(c: Comparison) -> dict:
-    """The comparison as plain JSON values (NaN and inf as null)."""
+    """The comparison as plain JSON values (NaN and inf as null). Each run has ``complete``
+    (false: unfinished; null: no ``metrics.json`` to tell) and ``episodes_requested``;
+    ``warnings`` repeats the comparison's warnings."""
     out = {
+        "warnings": list(c.warnings),
         "runs": [
-            {"label": label, "directory": str(r.directory), "episodes": len(r.records)}
+            {
+                "label": label,
+                "directory": str(r.directory),
+                "episodes": len(r.records),
+                "episodes_requested": r.planned_episodes,
+                "complete": None
+                if r.summary is None
+                else r.planned_episodes is None or len(r.records) >= r.planned_episodes,
+            }
             for label, r in zip(c.labels, c.runs, strict=True)
         ],
         "metrics": {

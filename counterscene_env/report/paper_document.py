@@ -35,15 +35,57 @@ def build(
     labels: dict[str, str],
     paper_names: dict[str, str | None],
 ) -> dict:
-    """``{scenario: {table: cells}}`` (``paper_tables.table``) for every table a scenario
-    has (``tables_of[scenario]``), with the rows of ``table_rows[table]`` it ran."""
+    """``{"tables": {scenario: {table: cells}}, "missing": {scenario: {table: [row]}}, ...}``:
+    the cells (``paper_tables.table``) of every table a scenario has (``tables_of[scenario]``)
+    from the rows of ``table_rows[table]`` it ran, and the rows it has no episode of yet
+    (``--tables-only`` before every row ran), which the markdown and ``tables.json`` name
+    rather than leave out in silence."""
     out: dict = {}
-    for where, runs in results.items():
-        for name in tables_of[where]:
+    missing: dict = {}
+    for where, names in tables_of.items():
+        runs = results.get(where, {})
+        for name in names:
             rows = {r: runs[r] for r in table_rows[name] if r in runs}
+            absent = [r for r in table_rows[name] if r not in runs]
+            if absent:
+                missing.setdefault(where, {})[name] = absent
             if rows:
                 out.setdefault(where, {})[name] = table(name, rows)
-    return {"tables": out, "labels": labels, "paper_names": paper_names}
+    return {
+        "tables": out,
+        "missing": missing,
+        "reference": {t: rows[0] for t, rows in table_rows.items()},
+        "labels": labels,
+        "paper_names": paper_names,
+    }
+
+
+def missing_lines(built: dict, meta: dict) -> list[str]:
+    """Markdown naming the rows with no episode yet, per scenario and table, and the command
+    that runs them (empty when every row has episodes)."""
+    if not built.get("missing"):
+        return []
+    labels = built["labels"]
+    lines = [
+        "**Rows not run yet**: no episode of these rows is in the output directory, so the "
+        "tables below leave them out:",
+        "",
+    ]
+    for where, tables in built["missing"].items():
+        for name, rows in tables.items():
+            names = ", ".join(f"{labels.get(r, r)} (`{where}/{r}/`)" for r in rows)
+            lines.append(f"- {where}, {name} table: {names}")
+            reference = built["reference"].get(name)
+            kept = built["tables"].get(where, {}).get(name)
+            if reference in rows and kept:
+                lines[-1] += (
+                    f"; the table's reference row {labels.get(reference, reference)} is among "
+                    f"them, so its rows are paired with {labels.get(next(iter(kept)), '?')}"
+                    " instead"
+                )
+    command = meta.get("run_command") or "the same command without --tables-only"
+    lines += ["", f"Run them with: `{command}` (it resumes the rows already run).", ""]
+    return lines
 
 
 def write(out: str | Path, built: dict, meta: dict, seconds: dict[str, dict[str, float]]) -> Path:
@@ -56,6 +98,8 @@ def write(out: str | Path, built: dict, meta: dict, seconds: dict[str, dict[str,
     doc = {
         **meta,
         "tables": {w: {t: to_json(c) for t, c in ts.items()} for w, ts in tables.items()},
+        # Rows with no episode yet, per scenario and table: left out of "tables" above.
+        "missing_rows": built.get("missing", {}),
         "paper": {t: {"source": PAPER_SOURCE[t], "rows": PAPER[t]} for t in PAPER},
     }
     (out / "tables.json").write_text(json.dumps(json_safe(doc), indent=1) + "\n")
@@ -108,6 +152,7 @@ def markdown(built: dict, meta: dict, seconds: dict[str, dict[str, float]]) -> s
         "reference, not comparable data; its HBR is a share of all agents' steps, not the "
         "ego's, and its CR the ego-adversary one.",
         "",
+        *missing_lines(built, meta),
     ]
     for where, tables in built["tables"].items():
         lines += [f"## {where}", ""]

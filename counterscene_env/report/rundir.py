@@ -68,9 +68,10 @@ def load_run(directory: str | os.PathLike) -> Run:
     Raises:
         FileNotFoundError: no such directory, or it has no ``episodes.jsonl``, or neither
             ``run.json`` nor ``metrics.json`` (the message names the files).
-        ValueError: ``episodes.jsonl`` has no finished episode, a line that is not JSON
-            before the last, a record without a required field, or episodes out of order
-            (the message names the file, the line and the field).
+        ValueError: a JSON file that is not a JSON object, a run whose ``sim`` is not one;
+            ``episodes.jsonl`` has no finished episode, a line that is not JSON before the
+            last, a record without a required field or with a wrongly typed one, or
+            episodes out of order (the message names the file, the line and the field).
     """
     root = Path(directory)
     if root.is_file():
@@ -91,6 +92,12 @@ def load_run(directory: str | os.PathLike) -> Run:
                 "is unknown"
             )
         identity = {k: v for k, v in summary["config"].items() if k != "episodes"}
+    if not isinstance(identity.get("sim", {}), dict):
+        source = "run.json" if (root / "run.json").is_file() else "metrics.json, its config"
+        raise ValueError(
+            f"{root / source}: field 'sim' is {identity['sim']!r}, not an object of "
+            "closed-loop settings"
+        )
     records, cut = _read_records(episodes)
     if PYTHON_PLANNER_KEY in records[0]:  # run.json names the config's planner, not this one
         identity = {**identity, "planner": PYTHON_PLANNER_PREFIX + records[0][PYTHON_PLANNER_KEY]}
@@ -101,9 +108,12 @@ def _read_json(path: Path) -> dict | None:
     if not path.is_file():
         return None
     try:
-        return json.loads(path.read_text())
+        out = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not JSON ({exc})") from None
+    if not isinstance(out, dict):
+        raise ValueError(f"{path}: {type(out).__name__}, not a JSON object")
+    return out
 
 
 def _read_records(path: Path) -> tuple[list[dict], int]:

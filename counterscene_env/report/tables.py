@@ -50,8 +50,28 @@ class EpisodeMetric:
 
 def field(key: str) -> Callable[[Sequence[dict]], np.ndarray]:
     """``records -> [E]``: record field ``key`` of each episode (NaN where missing), as a
-    rate counts it (``metrics.rate_value``: no adversary, no collision with one)."""
-    return lambda records: np.array([rate_value(r, key, r.get(key)) for r in records], float)
+    rate counts it (``metrics.rate_value``: no adversary, no collision with one).
+
+    Records read from a run directory were checked as the file was read (naming its line,
+    ``stress.log.record_problem``); records handed over from Python are checked here.
+
+    Raises:
+        ValueError: a value that is not a number (naming the episode and the field).
+    """
+
+    def values(records: Sequence[dict]) -> np.ndarray:
+        out = []
+        for i, r in enumerate(records):
+            try:
+                out.append(rate_value(r, key, r.get(key)))
+            except (TypeError, ValueError):
+                episode = r.get("episode", i)
+                raise ValueError(
+                    f"episode {episode}: field {key!r} is {r.get(key)!r}, not a number"
+                ) from None
+        return np.array(out, dtype=np.float64)
+
+    return values
 
 
 def last_second(key: str) -> Callable[[Sequence[dict]], np.ndarray]:

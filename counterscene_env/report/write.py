@@ -5,6 +5,8 @@ from __future__ import annotations
 import importlib.util
 import os
 import shlex
+import shutil
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -39,6 +41,8 @@ def write_report(directory: str | os.PathLike, videos: int = 3, progress: bool =
     - ``command.txt``: the ``counterscene stress`` command line that reruns the run.
 
     A run stopped midway (no ``metrics.json`` yet) gets a report of its finished episodes.
+    The files are made elsewhere and moved in at the end: a report that fails (or is
+    stopped) on the way leaves the directory as it was.
 
     Args:
         directory: the run directory.
@@ -56,21 +60,55 @@ def write_report(directory: str | os.PathLike, videos: int = 3, progress: bool =
     videos = check_int("videos", videos, ge=0)
     run = load_run(directory)
     root = run.directory
-    (root / "command.txt").write_text(command_text(run))
-    figs = per_second_plots(per_second_table(run.records), root)
-    hist_figs, notes = histograms(run.records, root)
-    worst = ranking.worst_episodes(run.records, videos)
-    made, video_note = _videos(run, worst, progress) if worst else ({}, _NO_VIDEOS)
-    blocks = document(
-        run, shlex.join(stress_argv(run)), [*figs, *hist_figs], notes, made, video_note
-    )
-    (root / "report.md").write_text(markdown.render(blocks))
-    page = root / "report.html"
-    page.write_text(html.render(blocks, root, f"Stress report: {run.name}"))
+    # Everything is made in a scratch directory and moved in only once all of it stands:
+    # a run the report refuses (a bad run.json, a record no table can read), a crash or a
+    # Ctrl-C while filming leaves the run directory as it was, an earlier report included.
+    command = command_text(run)
+    with tempfile.TemporaryDirectory(prefix="counterscene-report-") as scratch:
+        stage = Path(scratch)
+        figs = per_second_plots(per_second_table(run.records), stage)
+        hist_figs, notes = histograms(run.records, stage)
+        worst = ranking.worst_episodes(run.records, videos)
+        made, video_note = _videos(run, worst, stage, progress) if worst else ({}, _NO_VIDEOS)
+        blocks = document(
+            run, shlex.join(stress_argv(run)), [*figs, *hist_figs], notes, made, video_note
+        )
+        (stage / "command.txt").write_text(command)
+        (stage / "report.md").write_text(markdown.render(blocks))
+        # Last: the page embeds the plots, so it is written once they are.
+        (stage / "report.html").write_text(html.render(blocks, stage, f"Stress report: {run.name}"))
+        _move_in(stage, root)
     kept = {f.path for f in [*figs, *hist_figs]}
     kept |= {p for v in made.values() for p in (v.mp4, v.gif) if p is not None}
     _drop_stale(root, kept)
-    return page
+    return root / "report.html"
+
+
+#: The report's own files, moved into the run directory after its plots and videos, so that
+#: a page is never in place before what it shows.
+_PAGES = ("command.txt", "report.md", "report.html")
+
+
+def _move_in(stage: Path, root: Path) -> None:
+    """Move every file of ``stage`` to the same place under ``root`` (replacing an earlier
+    report's), the pages last.
+
+    Raises:
+        ValueError: a file's place under ``root`` is taken by a directory, or a folder's
+            by a file (checked before anything moves).
+    """
+    files = sorted(p.relative_to(stage) for p in stage.rglob("*") if p.is_file())
+    files.sort(key=lambda rel: str(rel) in _PAGES)  # stable: plots and videos first
+    for rel in files:
+        target = root / rel
+        if target.is_dir():
+            raise ValueError(f"{target} is a directory: the report cannot write its file there")
+        for parent in list(rel.parents)[:-1]:
+            if (root / parent).is_file():
+                raise ValueError(f"{root / parent} is a file: the report needs a folder there")
+    for rel in files:
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(stage / rel, root / rel)
 
 
 def _drop_stale(root: Path, kept: set[Path]) -> None:
@@ -88,10 +126,11 @@ _NO_VIDEOS = "No videos were asked for (counterscene report DIR --videos K makes
 
 
 def _videos(
-    run: Run, worst: Sequence[dict], progress: bool
+    run: Run, worst: Sequence[dict], stage: Path, progress: bool
 ) -> tuple[dict[int, EpisodeVideo], str | None]:
-    """Replay and film the ``worst`` episodes: ``{episode: EpisodeVideo}`` and a note on
-    the videos as a whole (None when every video was made)."""
+    """Replay and film the ``worst`` episodes into ``stage/videos/``: ``{episode:
+    EpisodeVideo}`` (paths relative to ``stage``) and a note on the videos as a whole (None
+    when every video was made)."""
     from counterscene_env.report.replay import can_replay
 
     reason = can_replay(run)
@@ -121,7 +160,7 @@ def _videos(
             continue
         for rep in replays:
             stem = f"episode_{rep.record['episode']:04d}"
-            files = write_videos(rep, run.directory / VIDEOS, stem)
+            files = write_videos(rep, stage / VIDEOS, stem)
             out[rep.record["episode"]] = EpisodeVideo(
                 mp4=VIDEOS / f"{stem}.mp4" if isinstance(files["mp4"], Path) else None,
                 gif=VIDEOS / f"{stem}.gif",

@@ -97,19 +97,46 @@ class StressConfig:
         return out
 
 
+#: Run-identity keys :func:`run_identity` leaves out at these, their defaults, so that runs
+#: from before the key still resume; readers put them back (:func:`effective_identity`).
+IDENTITY_DEFAULTS = {
+    f.name: f.default
+    for f in dataclasses.fields(StressConfig)
+    if f.name in ("egos", "min_future", "rollouts")
+}
+
+
 def run_identity(config: StressConfig, model: str, env_config: dict | None = None) -> dict:
     """What a stress run is, for :class:`~counterscene_env.stress.EpisodeLog`: its config but
     the episode count, its model, and (sb3 planners) the env-config keys given on top of the
-    policy's sidecar (``--like``, ``--env-config``), which change what the policy sees."""
+    policy's sidecar (``--like``, ``--env-config``), which change what the policy sees. Keys
+    of :data:`IDENTITY_DEFAULTS` at their default are left out (runs from before the key)."""
     out = config.to_dict()
     out.pop("episodes")
-    if out["egos"] == 1:
-        out.pop("egos")  # the recorded egos: as runs from before the key, which still resume
-    if out["min_future"] == 0:
-        out.pop("min_future")  # every scene: as runs from before the key
-    if out["rollouts"] == 1:
-        out.pop("rollouts")  # one rollout per episode: as runs from before the key
+    for key, default in IDENTITY_DEFAULTS.items():
+        if out[key] == default:
+            out.pop(key)
     out["model"] = model
     if env_config:
         out["env_config"] = env_config
     return out
+
+
+def effective_identity(identity: dict) -> dict:
+    """A run identity as ``run.json`` holds it, with every setting the run ran with: the keys
+    :func:`run_identity` leaves out at their default (:data:`IDENTITY_DEFAULTS`; no
+    ``env_config``: ``{}``) put back, and the closed-loop settings a run from before a
+    ``SimConfig`` field did not record at today's default. A closed-loop setting of None stays
+    None: the world model's own default."""
+    sim = {**dataclasses.asdict(SimConfig()), **identity.get("sim", {})}
+    return {**IDENTITY_DEFAULTS, "env_config": {}, **identity, "sim": sim}
+
+
+def model_identity(model: str) -> dict:
+    """The world model of a run, for its summary: ``{"given": model as given (``--model``),
+    "directory": the checkpoint directory it names, absolute}``; ``"default"`` is the
+    shipped model's directory."""
+    from counterscene_env.world_model.checkpoint import DEFAULT_MODEL_DIR  # torch: lazily
+
+    directory = DEFAULT_MODEL_DIR if model in (None, "default") else Path(model)
+    return {"given": model, "directory": str(Path(directory).resolve())}

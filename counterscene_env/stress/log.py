@@ -42,6 +42,12 @@ REQUIRED_FIELDS = (
     "min_ttc",
     "min_clearance_adversary",
 )
+#: Record fields read as numbers wherever a record has them (JSON null: NaN, or inf for
+#: ``min_ttc``): the whole-episode metrics and what summaries and reports compute with.
+NUMBER_FIELDS = (*metrics.SCENE_KEYS, "rollout_s", "danger_score")
+#: Record fields that are whole numbers (null allowed but for ``seed``): the seeds an episode
+#: is replayed from, and counts.
+INT_FIELDS = ("seed", "scene_seed", "rollout", "rollout_seed", "rollouts", "replans")
 
 
 def differences(have: dict, want: dict, prefix: str = "") -> list[str]:
@@ -166,8 +172,9 @@ def read_records(path: Path) -> tuple[list[dict], list[str] | None, int]:
 
     Raises:
         ValueError: a line that is not JSON before the last, a record without a field of
-            :data:`REQUIRED_FIELDS`, or episodes out of order (naming the file, the line
-            and the field).
+            :data:`REQUIRED_FIELDS` or with a wrongly typed one (:func:`record_problem`),
+            episodes out of order, or a wrongly typed timing in ``episode_timings.jsonl``
+            (naming the file, the line and the field).
     """
     text = path.read_text()
     lines = text.splitlines()
@@ -179,9 +186,14 @@ def read_records(path: Path) -> tuple[list[dict], list[str] | None, int]:
             if n != len(lines):
                 raise ValueError(f"{path}: line {n} is not JSON") from None
             break
+        if not isinstance(rec, dict):
+            raise ValueError(f"{path}: line {n} is {_json(rec)}, not a JSON object (a record)")
         missing = [k for k in REQUIRED_FIELDS if k not in rec]
         if missing:
             raise ValueError(f"{path}: line {n} has no field {', '.join(map(repr, missing))}")
+        problem = record_problem(rec)
+        if problem:
+            raise ValueError(f"{path}: line {n}: {problem}")
         if rec["episode"] != len(records):
             raise ValueError(
                 f"{path}: line {n} is episode {rec['episode']!r}, expected {len(records)}"
@@ -190,6 +202,56 @@ def read_records(path: Path) -> tuple[list[dict], list[str] | None, int]:
     cut = len(lines) - len(records)
     repair = lines[: len(records)] if cut or (text and not text.endswith("\n")) else None
     return merge_timings([record_from_json(r) for r in records], path.parent), repair, cut
+
+
+def _is_number(value: object) -> bool:
+    """A JSON number (not a bool: ``true`` is no rate or distance)."""
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _json(value: object) -> str:
+    """``value`` as the file spells it (``"yes"``, ``true``), cut to a readable length."""
+    text = json.dumps(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def record_problem(record: dict) -> str | None:
+    """What is wrongly typed in an episode record as ``episodes.jsonl`` holds it (None:
+    nothing): ``"field 'cr' is "yes", not a number or null"``. Checked when the file is read,
+    so that a bad record is named by its file, line and field, not by a numpy error later.
+
+    Checks :data:`NUMBER_FIELDS` (numbers or null), :data:`INT_FIELDS` (whole numbers; null
+    but for ``seed``) and ``per_second`` (an object of horizon seconds, each an object of
+    numbers or null)."""
+    for key in NUMBER_FIELDS:
+        value = record.get(key)
+        if value is not None and not _is_number(value):
+            return f"field {key!r} is {_json(value)}, not a number or null"
+    for key in INT_FIELDS:
+        if key not in record or (record[key] is None and key != "seed"):
+            continue
+        value = record[key]
+        if not isinstance(value, int) or isinstance(value, bool):
+            return f"field {key!r} is {_json(value)}, not a whole number"
+    return _per_second_problem(record["per_second"])
+
+
+def _per_second_problem(per_second: object) -> str | None:
+    """What is wrongly typed in a record's ``per_second`` (None: nothing)."""
+    if not isinstance(per_second, dict):
+        return f"field 'per_second' is {_json(per_second)}, not an object of horizon seconds"
+    for second, row in per_second.items():
+        where = f"per_second[{second!r}]"
+        try:
+            float(second)
+        except ValueError:
+            return f"field 'per_second' has the key {second!r}, not a horizon in seconds"
+        if not isinstance(row, dict):
+            return f"field {where} is {_json(row)}, not an object of metrics"
+        for key, value in row.items():
+            if value is not None and not _is_number(value):
+                return f"field {where}[{key!r}] is {_json(value)}, not a number or null"
+    return None
 
 
 def split_timings(record: dict) -> tuple[dict, dict]:
@@ -204,17 +266,27 @@ def merge_timings(records: list[dict], directory: str | os.PathLike) -> list[dic
     """``records`` (in episode order) with the timings of ``DIR/episode_timings.jsonl``
     merged in, where the file has them; a line cut short by a kill, or timings of episodes
     the records do not hold, are ignored. Records that carry their own timings (runs written
-    before the split) keep them."""
+    before the split) keep them.
+
+    Raises:
+        ValueError: a timing that is not a number (naming the file, the line and the field).
+    """
     path = Path(directory) / TIMINGS_FILE
     if not path.is_file():
         return records
     found: dict[int, dict] = {}
-    for line in path.read_text().splitlines():
+    for n, line in enumerate(path.read_text().splitlines(), start=1):
         try:
             row = json.loads(line)
         except json.JSONDecodeError:
             continue
         if isinstance(row, dict) and isinstance(row.get("episode"), int):
+            for key in TIMING_KEYS:
+                if key in row and not _is_number(row[key]):
+                    raise ValueError(
+                        f"{path}: line {n}: field {key!r} is {_json(row[key])}, not a number "
+                        "of seconds"
+                    )
             found[row["episode"]] = row
     out = []
     for rec in records:

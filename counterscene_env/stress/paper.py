@@ -196,7 +196,7 @@ def _open_logs(
             Path(out) / where / name,
             run_identity(config, model),
             resume=True,
-            summarize=lambda r, c=config: summarize(r[: c.episodes], c),
+            summarize=lambda r, c=config: summarize(r[: c.episodes], c, model),
         )
         if refuse_longer and len(log.records) > config.episodes:
             raise ValueError(
@@ -236,7 +236,7 @@ def run_rows(
     Every config is checked before the first episode runs, so a bad spec or planner fails
     at once and leaves nothing behind. ``run=False``: run nothing, return the episodes
     already in ``out`` (a row may then hold fewer than ``episodes``; rows with none are
-    left out).
+    left out of the result, and ``report.paper_document.build`` names them as not run).
     """
     from counterscene_env.world_model.checkpoint import load_model
 
@@ -269,6 +269,6 @@ def run_rows(
                 records = run_episodes(world_model, config, progress=progress, log=log)
         else:
             records = log.records[: config.episodes]
-        write_summary(directory, summarize(records, config))
+        write_summary(directory, summarize(records, config, model))
         results.setdefault(where, {})[name] = records
     return results

@@ -11,25 +11,34 @@ import numpy as np
 
 from counterscene_env import metrics
 from counterscene_env.scene.sources import SKIPPED
-from counterscene_env.stress.config import StressConfig
+from counterscene_env.stress.config import StressConfig, model_identity
 
 
-def summarize(records: Sequence[dict], config: StressConfig) -> dict:
+def summarize(records: Sequence[dict], config: StressConfig, model: str | None = None) -> dict:
     """The paper's table row of a run (package docstring), without timings: plain Python
     values, with NaN where there is nothing to measure (``metrics.json_safe`` writes it as
     JSON's null, as ``metrics.json`` and ``--json`` have it).
 
     ``complete`` says whether every requested episode (``episodes_requested``, the config's)
     is in ``records``; a stopped run's summary has ``complete: false`` and ``episodes`` the
-    number it finished."""
+    number it finished. ``model`` (``--model``, as given): the summary names the world model
+    under ``model`` (``config.model_identity``: as given, and its directory).
+
+    Two TTC aggregates, of the ego's min TTC per episode [s] (inf: no projected conflict):
+    ``mean_min_ttc`` is the mean over the episodes with a projected conflict (inf when none
+    has one; ``episodes_without_ttc_conflict`` counts the others), ``overall["min_ttc"]``
+    (``metrics.aggregate``) the median over every episode, inf counted (inf when more than
+    half have no conflict). docs/reports.md, "metrics.json"."""
     agg = metrics.aggregate(records)
     ttc = np.array([r["min_ttc"] for r in records], float)
     finite = ttc[np.isfinite(ttc)]
     overall = agg["overall"]
+    named = {} if model is None else {"model": model_identity(model)}
     return {
         "complete": len(records) >= config.episodes,
         "episodes": len(records),
         "episodes_requested": config.episodes,
+        **named,
         "horizons": agg["groups"],
         "per_second": agg["per_second"],
         "cr": overall["cr"],
