@@ -22,8 +22,9 @@ def print_stress(config, summary: dict, times: dict, scenario: str, workers: int
             else ""
         )
     )
-    if "model" in summary:
-        print(f"world model: {summary['model']['given']} ({summary['model']['directory']})")
+    model = summary.get("model") or {}
+    if model.get("given") not in (None, "default"):  # the shipped one goes without saying
+        print(f"world model: {model['given']} ({model['directory']})")
     print(f"{'':8s}" + "".join(f"{k:>10s}" for k in ("ADE", "FDE", "ORR", "HBR", "CR")))
     for name, row in summary["horizons"].items():
         print(

@@ -136,7 +136,6 @@ def model_identity(model: str) -> dict:
     """The world model of a run, for its summary: ``{"given": model as given (``--model``),
     "directory": the checkpoint directory it names, absolute}``; ``"default"`` is the
     shipped model's directory."""
-    from counterscene_env.world_model.checkpoint import DEFAULT_MODEL_DIR  # torch: lazily
+    from counterscene_env.world_model.checkpoint import model_dir  # torch: lazily
 
-    directory = DEFAULT_MODEL_DIR if model in (None, "default") else Path(model)
-    return {"given": model, "directory": str(Path(directory).resolve())}
+    return {"given": model, "directory": str(model_dir(model).resolve())}
