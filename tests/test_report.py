@@ -423,6 +423,9 @@ def test_paired_rate_of_the_audit_case_and_of_many_pairs():
     d = paired_rate([1] * 5 + [0] * 15, [0] * 20)
     assert not d.significant and d.low < 0 < d.high and d.difference == -0.25
     assert paired_rate([1] * 6 + [0] * 14, [0] * 20).high < 0  # p = 0.031
+    assert d.low < d.difference  # the chance in how many pairs disagree widens it too
+    none, one = paired_rate([0] * 20, [0] * 20), paired_rate([1] + [0] * 19, [0] * 20)
+    assert none.low < 0 < none.high and one.high - one.low >= none.high - none.low
     big = paired_rate([1.0] * 700 + [0.0] * 1300, [0.0] * 700 + [1.0] * 1300)  # overflowed
     assert big.significant and 0.25 < big.low < big.difference < big.high < 0.35
 

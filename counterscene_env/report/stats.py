@@ -9,9 +9,9 @@ means over episodes, and paired differences between two runs on the same episode
   mean has no interval (NaN ends, printed as such) rather than a zero-width one.
 - A **paired difference** (run B minus run A over the episodes both ran). For a rate the
   decision is McNemar's exact test (a binomial test on the episodes where the two runs
-  disagree), and the interval is that test inverted: the Clopper-Pearson interval of B's
-  share of the disagreeing episodes, times their share of all pairs
-  (:func:`paired_rate`), so it excludes 0 exactly when the test passes. (Until 3 Dec 2026
+  disagree), and the interval is built on that test: the Clopper-Pearson interval of B's
+  share of the disagreeing episodes, times the Clopper-Pearson interval of their share of
+  all pairs (:func:`paired_rate`), so it excludes 0 exactly when the test passes. (Until 3 Dec 2026
   it was a paired bootstrap, which could exclude 0 beside a test that did not pass: 5 of 20
   against 0 of 20 gave [-45, -10] points with p = 0.0625.) For a mean the interval is a
   paired bootstrap and the decision whether it excludes 0. A difference that does not pass
@@ -120,7 +120,7 @@ class Paired:
 
     Attributes:
         difference: the mean paired difference (a rate difference for 0/1 flags).
-        low, high: its 95 % interval (rates: the inverted McNemar test, :func:`paired_rate`;
+        low, high: its 95 % interval (rates: built on McNemar's test, :func:`paired_rate`;
             means: a paired bootstrap).
         n: pairs with a value in both runs.
         p_value: McNemar's exact p-value for rates, None for means.
@@ -155,18 +155,19 @@ def paired_rate(a: Sequence[float], b: Sequence[float]) -> Paired:
     n, discordant = int(x.size), a_only + b_only
     if n == 0:
         lo = hi = diff = math.nan
-    elif discordant == 0:
-        # No pair disagrees: the difference is 0, and at most the share of disagreeing
-        # pairs that 0 of n still admits either way.
-        diff, bound = 0.0, clopper_pearson(0, n)[1]
-        lo, hi = -bound, bound
     else:
-        # Delta = psi (2 pi - 1): psi the share of disagreeing pairs (N / n), pi the share of
-        # them that B flags. Conditional on N, B's count is binomial(N, pi), the same law the
+        # Delta = psi (2 pi - 1): psi the share of pairs that disagree, pi the share of those
+        # that B flags. Given the disagreeing pairs, B's count is binomial(N, pi), the law the
         # test reads, so pi's Clopper-Pearson interval excludes 1/2 exactly when p < ALPHA.
-        pi_lo, pi_hi = clopper_pearson(b_only, discordant)
+        # psi's own interval widens the ends (never crossing 0: psi's lower end is above 0
+        # once a pair disagrees), so that a few disagreements do not fix the difference's
+        # size; with none, pi is unknown and Delta lies within +-psi's upper end.
+        psi_lo, psi_hi = clopper_pearson(discordant, n)
+        pi_lo, pi_hi = clopper_pearson(b_only, discordant) if discordant else (0.0, 1.0)
         diff = (b_only - a_only) / n
-        lo, hi = (2 * pi_lo - 1) * discordant / n, (2 * pi_hi - 1) * discordant / n
+        e_lo, e_hi = 2 * pi_lo - 1, 2 * pi_hi - 1  # the range of 2 pi - 1
+        lo = e_lo * (psi_hi if e_lo < 0 else psi_lo)  # the smallest psi (2 pi - 1)
+        hi = e_hi * (psi_hi if e_hi > 0 else psi_lo)  # the largest
     return Paired(diff, lo, hi, n, p, a_only, b_only, p < ALPHA, "McNemar exact, p < 0.05")
 
 
