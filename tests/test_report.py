@@ -536,6 +536,13 @@ def test_compare_labels_show_defaults_not_none(template, tmp_path):
     del ident["sim"]["memory_limit_gb"]  # a run from before the setting existed
     (c / "run.json").write_text(json.dumps(ident))
     assert compare_runs([a, c]).labels == ["a (sampler=model default)", "c (sampler=ddim)"]
+    # A run's own report shows them so too, never "None".
+    from counterscene_env.report.run_report import what_was_run
+
+    items = what_was_run(load_run(a), "cmd")[1].items
+    settings = next(i for i in items if "other settings" in i)
+    assert "None" not in settings and "sampler=model default" in settings
+    assert "memory_limit_gb=half of memory" in settings
     labels = compare_runs([a, b, c]).labels
     assert not any("None" in label for label in labels)
 

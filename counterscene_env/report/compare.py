@@ -35,6 +35,7 @@ from counterscene_env.report.plots import compare_plot
 from counterscene_env.report.rundir import Run, load_run
 from counterscene_env.report.stats import Estimate, Paired
 from counterscene_env.report.tables import COMPARE_KEYS, EPISODE_METRICS
+from counterscene_env.sim.config import shown_setting
 from counterscene_env.stress.config import effective_identity
 
 #: Identity keys that do not change an episode's outcome (left out of labels).
@@ -119,17 +120,17 @@ def _paired(base: Run, run: Run, index: int) -> PairedRun:
     return PairedRun(index, len(pairs), out)
 
 
-#: How a label spells a closed-loop setting of None, and a setting a run did not record.
-MODEL_DEFAULT, NOT_RECORDED = "model default", "not recorded"
+#: How a label spells a setting a run did not record.
+NOT_RECORDED = "not recorded"
 
 
 def _flat(identity: dict) -> dict:
     """A run's settings as one flat dict, each as it took effect: run.json leaves some out at
     their default (``stress.config.effective_identity`` puts them back), and a closed-loop
-    setting of None is the world model's own default."""
+    setting of None is shown as what it means (``sim.config.shown_setting``)."""
     ident = effective_identity(identity)
     out = {k: v for k, v in ident.items() if k != "sim" and k not in _NOT_SETTINGS}
-    out.update({k: MODEL_DEFAULT if v is None else v for k, v in ident["sim"].items()})
+    out.update({k: shown_setting(k, v) for k, v in ident["sim"].items()})
     return out
 
 

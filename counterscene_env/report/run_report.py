@@ -33,6 +33,7 @@ from counterscene_env.report.tables import (
     episode_table,
     horizon_table,
 )
+from counterscene_env.sim.config import shown_setting
 
 #: Rows of the worst-episodes table (videos are made for the first few of them).
 WORST_ROWS = 10
@@ -74,7 +75,8 @@ def what_was_run(run: Run, command: str) -> list[Block]:
         f", guidance {sim.get('guidance', '?')}, {sim.get('num_samples', '?')} samples per "
         f"replan, replan every {sim.get('replan_every', '?')} steps, episodes of up to "
         f"{sim.get('duration', '?')} s{_short_logs(run, sim.get('duration'))}",
-        "other settings: " + ", ".join(f"{k}={v}" for k, v in sim.items() if k not in _SHOWN),
+        "other settings: "
+        + ", ".join(f"{k}={shown_setting(k, v)}" for k, v in sim.items() if k not in _SHOWN),
     ]
     if planned and done < planned:
         items.append(

@@ -173,3 +173,22 @@ class SimConfig:
     def from_mapping(cls, values: Mapping) -> SimConfig:
         """Build from a dict; unknown keys raise and name the valid ones."""
         return from_mapping(cls, values, "simulation")
+
+
+#: What each setting of :class:`SimConfig` that may be None does then, in a few words (run
+#: reports and ``compare`` labels show these, never "None"; the docstring above says more).
+NONE_MEANS = {
+    "sampler": "model default",
+    "sampling_steps": "model default",
+    "eta": "model default",
+    "map_guidance": "model default",
+    "hold_parked": "model default",
+    "realism_horizon": "whole plan",
+    "memory_limit_gb": "half of memory",
+}
+
+
+def shown_setting(key: str, value: object) -> object:
+    """``value`` of setting ``key`` as reports show it: None as what it means (:data:`NONE_MEANS`)."""
+    return NONE_MEANS.get(key, "None") if value is None else value
+
