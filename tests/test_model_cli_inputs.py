@@ -78,7 +78,7 @@ def test_evaluate_model_names_the_model_it_evaluated(tiny_model, one_scene, caps
     first = out.out.splitlines()[0]
     assert first == (
         f"model {tiny_model}: {tiny_model.resolve()} (preset default, 7 training steps, "
-        "fine-tuned from default)"
+        "fine-tuned from the shipped model before it)"
     )
 
 
@@ -229,3 +229,16 @@ def test_off_road_rates_count_only_points_inside_a_cropped_maps_extent(generated
     assert nowhere["log_offroad_rate"] is None or math.isnan(nowhere["log_offroad_rate"])
     rate = nowhere["model"]["offroad_rate"]
     assert rate is None or math.isnan(rate)
+
+
+def test_the_text_report_says_when_there_are_no_intervals_and_spells_no_value(
+    tiny_model, tmp_path, capsys
+):
+    """``--bootstrap 0`` asks for no intervals: the header says so (it promised a 95 %
+    interval and printed none); an empty speed bin reads n/a, not None."""
+    two = tmp_path / "two"
+    argv = ["generate", "--scenario", "merge", "--scenes", "2", "--out", str(two), "--quiet"]
+    assert main(argv) == 0
+    code, out = _evaluate(capsys, two, tiny_model, "--bootstrap", "0")
+    assert code == 0
+    assert "[no interval: --bootstrap 0]" in out.out and "None" not in out.out

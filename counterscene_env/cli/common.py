@@ -111,6 +111,9 @@ def load_model(name: str):
 
 
 def fmt(v) -> str:
+    """A figure for a text table: 4 significant digits; None (nothing measured) as ``n/a``."""
+    if v is None:
+        return "n/a"
     return f"{v:.4g}" if isinstance(v, float) else str(v)
 
 

@@ -204,13 +204,19 @@ def _model_record(given: str, model) -> dict:
 
 
 def _model_line(record: dict) -> str:
-    """``model default: /abs/dir (preset default, 1500 training steps, fine-tuned from
-    default)``: the text report's first line."""
+    """``model default: /abs/dir (preset default, 1500 training steps, fine-tuned from the
+    shipped model before it)``: the text report's first line."""
     facts = [f"preset {record['preset']}"] if record["preset"] else []
     if record["training_step"] is not None:
         facts.append(f"{record['training_step']} training steps")
     if record["init"] is not None:
-        facts.append(f"fine-tuned from {record['init']}")
+        start = record["init"]
+        # A shipped model's "default" is the model shipped before it, not itself.
+        facts.append(
+            "fine-tuned from the shipped model before it"
+            if start == "default"
+            else f"fine-tuned from {start}"
+        )
     tail = f" ({', '.join(facts)})" if facts else ""
     return f"model {record['given']}: {record['directory']}{tail}"
 
@@ -249,7 +255,13 @@ def _print_evaluation(result: dict) -> None:
     )
     windows = f", {result['windows']} windows" if result.get("every_s") else ""
     # One scene has no spread over scenes to resample: no interval (scene_bootstrap.py).
-    band = "one scene: no interval" if result["scenes"] < 2 else "95 % interval over scenes"
+    band = (
+        "one scene: no interval"
+        if result["scenes"] < 2
+        else "no interval: --bootstrap 0"
+        if not result.get("bootstrap_resamples")
+        else "95 % interval over scenes"
+    )
     print(f"ADE / constant velocity's [{band}{windows}]:")
     for name, block in [("all", result), *result["by_speed"].items()]:
         cells = []
