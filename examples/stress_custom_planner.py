@@ -5,6 +5,10 @@ steering rad]``. This one keeps its speed, but brakes when anything is within 15
 a 3 m wide corridor. It is compared with the unguided world model (``none``) and with the full
 counterfactual guidance.
 
+The figures are the run summary's (``counterscene_env.stress.summarize``), as ``counterscene
+stress`` prints them: an episode in which no adversary was found (a fallback) counts as one
+without an ego-adversary collision.
+
 python examples/stress_custom_planner.py --scenario intersection --episodes 8
 """
 
@@ -53,12 +57,21 @@ def main() -> None:
             sim=SimConfig(guidance=guidance),
         )
         records = run_episodes(model, config, planner_factory=CautiousPlanner, progress=False)
-        s = summarize(records, config)
-        print(
-            f"guidance {guidance:5s}: CR {s['cr']:.2f}  ego-adversary CR "
-            f"{s['cr_ego_adversary'] if s['fallbacks'] < s['episodes'] else float('nan'):.2f}  "
-            f"HBR {s['hbr_ego']:.2f}  mean min TTC {s['mean_min_ttc']:.2f} s"
-        )
+        print(summary_line(guidance, summarize(records, config)))
+
+
+def summary_line(guidance: str, s: dict) -> str:
+    """One run's figures, straight from its summary."""
+    ttc = (
+        f"mean min TTC {s['mean_min_ttc']:.2f} s"
+        if s["episodes_without_ttc_conflict"] < s["episodes"]
+        else "no TTC conflict in any episode"
+    )
+    return (
+        f"guidance {guidance:5s}: CR {s['cr']:.2f}  ego-adversary CR "
+        f"{s['cr_ego_adversary']:.2f}  HBR {s['hbr_ego']:.2f}  {ttc}  "
+        f"(no adversary found in {s['fallbacks']} of {s['episodes']} episodes)"
+    )
 
 
 if __name__ == "__main__":

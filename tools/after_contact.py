@@ -58,6 +58,18 @@ def episode_row(loop: ClosedLoop, b: int, scene) -> dict | None:
     }
 
 
+def contact_line(selector: str, rows: list[dict]) -> str:
+    """How many of the episodes with an adversary (:func:`episode_row`) hit the ego, and the
+    median first contact of those that did."""
+    times = [r["hit_s"] for r in rows if r["hit_s"] is not None]
+    if not times:
+        return f"{selector}: {len(rows)} episodes with an adversary, no episode hit the ego"
+    return (
+        f"{selector}: {len(rows)} episodes with an adversary, {len(times)} hit the ego "
+        f"(median first contact {np.median(times):.1f} s)"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenario", default="merge")
@@ -77,11 +89,7 @@ def main() -> None:
             rows += [episode_row(loop, b, s) for b, s in enumerate(chunk)]
         rows = [r for r in rows if r is not None]
         hits = [r for r in rows if r["hit_s"] is not None]
-        first = np.median([r["hit_s"] for r in hits]) if hits else float("nan")
-        print(
-            f"{selector}: {len(rows)} episodes with an adversary, {len(hits)} hit the ego "
-            f"(median first contact {first:.1f} s)"
-        )
+        print(contact_line(selector, rows))
         for name, group in (("hit", hits), ("no hit", [r for r in rows if r["hit_s"] is None])):
             if group:
                 adv = np.mean([r["adversary_m"] for r in group], axis=0)

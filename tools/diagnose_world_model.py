@@ -274,11 +274,12 @@ def speed_changes(batch) -> torch.Tensor:
 def lane_stats(scenes, batch, sel) -> dict:
     lengths, widths, near = [], [], []
     for s in scenes:
-        seg, w = lane_segments(s, 20.0, 10)
+        segments = lane_segments(s, 20.0, 10)
+        seg = segments.points
         if not len(seg):
             continue
         lengths += np.linalg.norm(np.diff(seg, axis=1), axis=-1).sum(1).tolist()
-        widths += w.tolist()
+        widths += segments.widths.tolist()
         t = s.current_index
         moving = s.valid[:, t] & (np.abs(s.speeds[:, t]) >= MOVING) & (s.agent_types == "vehicle")
         for i in np.flatnonzero(moving):

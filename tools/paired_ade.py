@@ -31,6 +31,7 @@ from counterscene_env.world_model.eval_windows import window_batches, window_job
 from counterscene_env.world_model.evaluate import constant_velocity
 
 HORIZON = 30  # steps (3 s at 10 Hz)
+NO_INTERVAL = "[one scene: no interval]"  # as `counterscene evaluate-model` says it
 
 
 def per_scene(model, scenes, seed: int) -> np.ndarray:
@@ -68,6 +69,9 @@ def main() -> None:
         "the scene's id (e.g. 'Peach|US101' for NGSIM's roads), with its bootstrap interval",
     )
     args = ap.parse_args()
+    repeated = sorted({m for m in args.models if args.models.count(m) > 1})
+    if repeated:  # results are per name: a repeated one would silently count once
+        ap.error(f"model given more than once: {', '.join(repeated)} (name each model once)")
     scenes = list(stored_scenes(args.source))
     sums = {m: model_sums(m, scenes, args.seed) for m in args.models}
     rng = np.random.default_rng(0)
@@ -82,7 +86,7 @@ def main() -> None:
             line += (
                 f", minus {args.models[0]}: {ratio - first[:, 0].sum() / first[:, 1].sum():+.3f}"
             )
-            line += f" [{lo:+.3f}, {hi:+.3f}]"
+            line += f" [{lo:+.3f}, {hi:+.3f}]" if len(scenes) > 1 else f" {NO_INTERVAL}"
         print(line)
         if args.by:
             for group, rows in groups(scenes, args.by).items():
@@ -110,9 +114,15 @@ def groups(scenes, pattern: str) -> dict[str, list[int]]:
 
 
 def group_line(group: str, sums: np.ndarray, rng, resamples: int) -> str:
-    """``group: ratio [interval] (n scenes)`` over ``sums [S, 2]`` (bootstrap over scenes)."""
+    """``group: ratio [interval] (n scenes)`` over ``sums [S, 2]`` (bootstrap over scenes).
+
+    A group of one scene has no interval (resampling one scene gives it back every time).
+    """
     ratio = sums[:, 0].sum() / sums[:, 1].sum()
+    # Drawn for one scene too, so that the groups after it keep their intervals.
     draws = rng.integers(0, len(sums), (resamples, len(sums)))
+    if len(sums) < 2:
+        return f"{group}: {ratio:.3f} {NO_INTERVAL} (1 scene)"
     boot = [sums[d, 0].sum() / max(sums[d, 1].sum(), 1e-9) for d in draws]
     lo, hi = np.percentile(boot, [2.5, 97.5])
     return f"{group}: {ratio:.3f} [{lo:.3f}, {hi:.3f}] ({len(sums)} scenes)"

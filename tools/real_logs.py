@@ -11,7 +11,9 @@ also reads a dataset directory of ``counterscene generate``, e.g. generated held
 - loading: scenes, agents by type, what the importer repaired or dropped, load time;
 - the factual log against its own map, over the whole log: the share of vehicle positions
   off the road (all vehicles; moving ones, over 1 m/s by ``metrics.path_speeds``) with a
-  95 % Wilson interval over positions (positions of one track are correlated: read the
+  95 % Wilson interval over positions, counting only the positions the map can judge
+  (``RoadMap.judged``: inside a cropped map's extent), as the ORR metrics do; the positions
+  beyond the extent are counted apart (``vehicle_positions_beyond_map``) (positions of one track are correlated: read the
   interval as a floor on the uncertainty), ORR split parked / moving, and the ego's factual
   collision rate (ego CR, which must be 0: a log where the ego hits someone is no test);
 - causal selection on the factual future from the scene's "now" (``adversary/``): scenes with
@@ -30,7 +32,8 @@ also reads a dataset directory of ``counterscene generate``, e.g. generated held
   no final-step lane keeping: what the world model itself does. ``--min-seconds S`` keeps
   only logs at least S seconds long (all sources);
 - ``--plots K``: the drivable area over the log for the first K scenes, PNG: moving vehicles'
-  positions green on the road and red off it, parked ones grey or orange, the ego blue.
+  positions green on the road and red off it, parked ones grey or orange, those beyond the
+  map's extent purple, the ego blue.
 
 Writes ``OUT/real_logs.json`` and ``OUT/real_logs.md``; timings are kept apart from the
 results (``timing`` in the JSON).
@@ -90,17 +93,24 @@ def load_source(kind: str, path: str) -> tuple[list[Scene], list[float], dict]:
 
 
 def factual_fit(scene: Scene) -> dict:
-    """Off-road counts of the logged vehicles over the whole log, and the factual metrics."""
+    """Off-road counts of the logged vehicles over the whole log, and the factual metrics.
+
+    The off-road counts and the positions they are shares of are both only the positions the
+    map can judge (``RoadMap.judged``: inside a cropped map's extent), as the ORR metrics
+    count them; ``vehicle_positions_beyond_map`` are the valid vehicle positions left out.
+    """
     whole = scene.replace(current_index=0)
-    veh = scene.valid & scene.vehicle_mask[:, None]
+    logged = scene.valid & scene.vehicle_mask[:, None]
+    veh = logged & scene.road.judged(scene.positions)
     off = scene.road.off_road(scene.positions) & veh
     moving = veh & (path_speeds(scene) > MOVING_SPEED)
     m = evaluate_scene(whole)
     return {
-        "vehicle_positions": int(veh.sum()),
+        "judged_vehicle_positions": int(veh.sum()),
         "vehicle_off": int(off.sum()),
-        "moving_positions": int(moving.sum()),
+        "judged_moving_positions": int(moving.sum()),
         "moving_off": int((off & moving).sum()),
+        "vehicle_positions_beyond_map": int((logged & ~veh).sum()),
         "orr_parked": m["orr_parked"],
         "orr_moving": m["orr_moving"],
         "ego_cr": m["cr"],
@@ -226,12 +236,14 @@ def summarise(name: str, scenes: list[Scene], times: list[float], skipped: dict)
         "agents_by_type": dict(types),
         "repairs": dict(repairs),
         "dropped": dict(dropped),
+        # Shares of the judged positions (inside the map's extent), see factual_fit.
         "vehicle_off_road": rate(
-            sum(f["vehicle_off"] for f in fits), sum(f["vehicle_positions"] for f in fits)
+            sum(f["vehicle_off"] for f in fits), sum(f["judged_vehicle_positions"] for f in fits)
         ),
         "moving_off_road": rate(
-            sum(f["moving_off"] for f in fits), sum(f["moving_positions"] for f in fits)
+            sum(f["moving_off"] for f in fits), sum(f["judged_moving_positions"] for f in fits)
         ),
+        "vehicle_positions_beyond_map": sum(f["vehicle_positions_beyond_map"] for f in fits),
         "orr_parked_mean": float(np.nanmean([f["orr_parked"] for f in fits])),
         "orr_moving_mean": float(np.nanmean([f["orr_moving"] for f in fits])),
         "factual_ego_cr": rate(int(sum(f["ego_cr"] for f in fits)), len(fits)),
@@ -277,13 +289,15 @@ def plot_scene(scene: Scene, path: Path) -> None:
         ax.plot(c[:, 0], c[:, 1], "-", color="#8890b0", lw=0.3)
     veh = scene.valid & scene.vehicle_mask[:, None]
     off = scene.road.off_road(scene.positions)
+    on = ~off & scene.road.judged(scene.positions)  # beyond the map's extent: neither
     moving = veh & (path_speeds(scene) > MOVING_SPEED)
     parked = veh & ~moving
     style = [
-        (parked & ~off, "0.55", 2, "parked, on road"),
+        (parked & on, "0.55", 2, "parked, on road"),
         (parked & off, "orange", 2, "parked, off road"),
-        (moving & ~off, "green", 1, "moving, on road"),
+        (moving & on, "green", 1, "moving, on road"),
         (moving & off, "red", 3, "moving, off road"),
+        (veh & ~on & ~off, "purple", 1, "beyond the map's extent"),
     ]
     for mask, color, size, label in style:
         p = scene.positions[mask]
@@ -311,15 +325,17 @@ def markdown(results: list[dict]) -> str:
         return f"{100 * r['rate']:.2f} % [{100 * lo:.2f}, {100 * hi:.2f}] ({r['k']}/{r['n']})"
 
     lines = [
-        "| source | scenes | vehicle positions off-road | moving (>1 m/s) off-road | "
+        "| source | scenes | vehicle positions off-road (inside the map's extent) | "
+        "moving (>1 m/s) off-road | positions beyond the map | "
         "ORR parked / moving (mean) | factual ego CR | adversary (strict) / paper tier |",
-        "|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         sel = r["selection"]
         lines.append(
             f"| {r['source']} | {r['scenes']} | {pct(r['vehicle_off_road'])} | "
-            f"{pct(r['moving_off_road'])} | {r['orr_parked_mean']:.3f} / "
+            f"{pct(r['moving_off_road'])} | {r['vehicle_positions_beyond_map']} | "
+            f"{r['orr_parked_mean']:.3f} / "
             f"{r['orr_moving_mean']:.3f} | {pct(r['factual_ego_cr'])} | "
             f"{sel['scenes_with_adversary_strict']} / {sel['scenes_with_paper_tier_candidate']} |"
         )

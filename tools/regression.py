@@ -18,8 +18,12 @@ before and after a change::
 - ``counterscene evaluate-model --json`` on 10 generated intersection scenes.
 
 ``compare`` prints each difference (file, key path, before, after) and exits 1 if there is any.
-Timing fields (:data:`TIMING_KEYS`) are left out of the comparison; ``--ignore-additions``
-also leaves out files and keys that only the new code writes (fields added on purpose).
+Only the result files are compared: the JSON and JSON-lines records and summaries
+(:data:`RESULT_SUFFIXES`); the rest of a ``stress --out`` directory (``command.txt``, which
+names the ``--out`` path, ``report.md``/``report.html``, ``plots/``, ``videos/``) is
+presentation of those results and is left out. Timing fields (:data:`TIMING_KEYS`) are left
+out of the comparison; ``--ignore-additions`` also leaves out files and keys that only the
+new code writes (fields added on purpose).
 """
 
 from __future__ import annotations
@@ -41,9 +45,14 @@ TIMING_KEYS = frozenset(
         "time_s",
         "load_seconds",
         "eval_seconds",
+        "wall_seconds",  # timings.json: the run's wall clock, worker start-up included
+        "wall_seconds_per_episode",
         "timings",  # `stress --json`: the run's wall-clock figures (timings.json)
     }
 )
+
+#: Suffixes of the result files (records and summaries) that ``compare`` reads.
+RESULT_SUFFIXES = (".json", ".jsonl")
 
 STRESS_RUNS = {
     "stress-intersection": ["--scenario", "intersection", "--planner", "idm", "--guidance", "full"],
@@ -115,7 +124,10 @@ def record(out: Path, episodes: int = 16) -> None:
 
 
 def _files(root: Path) -> list[Path]:
-    return sorted(p.relative_to(root) for p in root.rglob("*") if p.is_file())
+    """The result files under ``root`` (relative paths), see :data:`RESULT_SUFFIXES`."""
+    return sorted(
+        p.relative_to(root) for p in root.rglob("*") if p.is_file() and p.suffix in RESULT_SUFFIXES
+    )
 
 
 def _load(path: Path) -> list:
@@ -154,6 +166,11 @@ def diff(a, b, where: str = "", additions: bool = True) -> list[str]:
 
 def compare(before: Path, after: Path, additions: bool = True) -> int:
     names = sorted(set(_files(before)) | set(_files(after)))
+    others = sum(p.is_file() for root in (before, after) for p in root.rglob("*")) - sum(
+        len(_files(root)) for root in (before, after)
+    )
+    if others:
+        print(f"({others} non-result files left out: commands, reports, plots, videos)")
     problems = 0
     for name in names:
         if not (before / name).exists() and not additions:

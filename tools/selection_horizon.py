@@ -76,9 +76,9 @@ def main() -> None:
             c = pt.paired(ref_cr[:, None], cr[:, None], True)
             a = pt.paired(ref_ade[:, None], ade[:, None], False)
             line += (
-                f" | causal minus it: CR {-100 * c.difference:+.1f} points"
-                f" [{-100 * c.high:+.1f}, {-100 * c.low:+.1f}],"
-                f" ADE {-a.difference:+.2f} m [{-a.high:+.2f}, {-a.low:+.2f}]"
+                f" | causal minus it: CR {signed(-100 * c.difference, 1)} points"
+                f" [{signed(-100 * c.high, 1)}, {signed(-100 * c.low, 1)}],"
+                f" ADE {signed(-a.difference, 2)} m [{signed(-a.high, 2)}, {signed(-a.low, 2)}]"
             )
         print(line)
     best = max(rows[1:], key=lambda r: np.nanmean(values[r][0]))
@@ -87,6 +87,12 @@ def main() -> None:
     if args.split:
         for r in rows[1:]:
             split(records["counterscene"][:n], records[r][:n], values["counterscene"], values[r], r)
+
+
+def signed(x: float, digits: int) -> str:
+    """``x`` with its sign to ``digits`` decimals; no difference reads ``+0.0``, never
+    ``-0.0`` (a negated zero, or a small negative value that rounds to zero)."""
+    return f"{round(float(x), digits) + 0.0:+.{digits}f}"
 
 
 def split(causal: list, other: list, ref: tuple, val: tuple, name: str) -> None:
@@ -112,8 +118,8 @@ def split(causal: list, other: list, ref: tuple, val: tuple, name: str) -> None:
         share_ade = np.nansum(d_ade[idx]) / n_ade
         print(
             f"    {key:30s} {len(idx):4d} episodes  CR {100 * cr_a:5.1f} / {100 * cr_b:5.1f} %"
-            f" ({share_cr:+5.1f} points of the gap)  ADE {ade_a:.2f} / {ade_b:.2f} m"
-            f" ({share_ade:+.2f} m of the gap)"
+            f" ({signed(share_cr, 1):>5s} points of the gap)  ADE {ade_a:.2f} / {ade_b:.2f} m"
+            f" ({signed(share_ade, 2)} m of the gap)"
         )
 
 

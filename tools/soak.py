@@ -7,8 +7,9 @@
 env step = one ``step`` call). Actions are drawn from the action spaces with a seeded
 generator; every episode end resets with the next seed. RSS (``/proc/self/statm``) is sampled
 every ``--every`` steps. The report gives RSS at the first reset, at the end of the warm-up
-(``--warmup``, default a tenth of the steps) and at the end, and the growth after warm-up in
-percent: a leak shows as steady growth, the allocator's caches as a plateau.
+(``--warmup``, default a tenth of the steps: the first sample at or after it, whose step is
+``warmup_steps``) and at the end, and the growth after warm-up in percent: a leak shows as
+steady growth, the allocator's caches as a plateau.
 """
 
 from __future__ import annotations
@@ -69,7 +70,9 @@ def soak(kind: str, steps: int, every: int, warmup: int, config: dict, seed: int
             samples.append((i, rss_mb()))
     seconds = time.perf_counter() - start
     close()
-    warm = min(samples, key=lambda s: abs(s[0] - warmup))
+    # The warm-up ends at the first sample not before it (the last if it outlasts the run): a
+    # sample before it would count warm-up growth as growth after warm-up.
+    warm = next((s for s in samples if s[0] >= warmup), samples[-1])
     end = samples[-1]
     return {
         "kind": kind,

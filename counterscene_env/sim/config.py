@@ -191,4 +191,3 @@ NONE_MEANS = {
 def shown_setting(key: str, value: object) -> object:
     """``value`` of setting ``key`` as reports show it: None as what it means (:data:`NONE_MEANS`)."""
     return NONE_MEANS.get(key, "None") if value is None else value
-
