@@ -683,3 +683,23 @@ def test_videos_of_the_worst_episodes_replay_the_recorded_run(generated, tmp_pat
         for worst in [int(re.search(r"videos/episode_(\d+)\.mp4", md).group(1))]
         for ext in ("gif", "mp4")
     ] + ["notes.txt"]
+
+
+def test_a_run_scored_by_older_metric_definitions_is_not_resumed_or_compared_unnoticed(
+    template, tmp_path
+):
+    """Metric definitions change (HBR read along the path since 3 Dec 2026): a run begun
+    before, whose run.json has no ``metrics_version``, is refused on resume with the reason,
+    and a comparison with it warns that the rates are not comparable."""
+    old = write_run(tmp_path / "old", mixed(template))
+    ident = json.loads((old / "run.json").read_text())
+    assert ident.pop("metrics_version") == metrics.METRICS_VERSION
+    (old / "run.json").write_text(json.dumps(ident))
+    config = StressConfig("intersection", episodes=12, seed=100, planner="idm", batch=2)
+    with pytest.raises(ValueError, match="another definition of the metrics"):
+        EpisodeLog(old, run_identity(config, "default"), resume=True)
+    new = write_run(tmp_path / "new", mixed(template))
+    c = compare_runs([old, new])
+    assert any("different definitions of the metrics" in w for w in c.warnings)
+    assert c.labels == ["old", "new"]  # the version is a warning, not a label
+    assert compare_runs([new, write_run(tmp_path / "new2", mixed(template))]).warnings == []

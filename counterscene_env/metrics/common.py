@@ -26,6 +26,15 @@ def is_hard_braking(acc, threshold: float = HARD_BRAKE_THRESHOLD):
     return np.asarray(acc) < threshold - BRAKE_TOLERANCE
 
 
+#: The version of the metric definitions, bumped whenever one changes what it measures. A
+#: stress run's identity carries it, so that a run is never resumed, or compared, across two
+#: definitions unnoticed. 1 (no version recorded): until 2 Dec 2026. 2: 3 Dec 2026, HBR along
+#: the path and from the first rollout step, ORR within a cropped map's extent, an episode the
+#: ego's crash ended counted at later horizons, no adversary counted as no collision with one
+#: in every table (docs/metrics.md).
+METRICS_VERSION = 2
+
+
 #: Per-second keys of :func:`evaluate_scene` and :func:`aggregate`: the paper's table.
 PER_SECOND_KEYS = ("ADE", "FDE", "ORR", "HBR", "CR")
 

@@ -38,8 +38,9 @@ from counterscene_env.report.tables import COMPARE_KEYS, EPISODE_METRICS
 from counterscene_env.sim.config import shown_setting
 from counterscene_env.stress.config import effective_identity
 
-#: Identity keys that do not change an episode's outcome (left out of labels).
-_NOT_SETTINGS = ("batch",)
+#: Identity keys left out of labels: ``batch`` does not change an episode's outcome, and a
+#: difference of ``metrics_version`` is a warning of its own (:func:`compare_runs`).
+_NOT_SETTINGS = ("batch", "metrics_version")
 
 
 @dataclass(frozen=True)
@@ -66,7 +67,8 @@ class Comparison:
             the settings that differ between the runs).
         estimates: ``{key: [Estimate per run]}``.
         paired: one :class:`PairedRun` per run after the baseline.
-        warnings: one sentence per run that is unfinished (:func:`unfinished`), shown first
+        warnings: one sentence per run that is unfinished (:func:`unfinished`), and one if
+            the runs were scored by different metric definitions, shown first
             in every output.
     """
 
@@ -98,6 +100,13 @@ def compare_runs(directories: Sequence[str | os.PathLike]) -> Comparison:
     paired = [_paired(runs[0], run, i) for i, run in enumerate(runs) if i]
     labels = _labels(runs)
     warnings = [w for label, r in zip(labels, runs, strict=True) if (w := unfinished(label, r))]
+    versions = {r.identity.get("metrics_version", 1) for r in runs}  # none recorded: 1
+    if len(versions) > 1:
+        warnings.append(
+            "the runs were scored by different definitions of the metrics (metrics_version "
+            f"{', '.join(map(str, sorted(versions)))}; docs/metrics.md): their rates are not "
+            "comparable"
+        )
     return Comparison(runs, labels, estimates, paired, warnings)
 
 

@@ -13,6 +13,7 @@ from counterscene_env.config import (
     check_seed,
     describe_value,
 )
+from counterscene_env.metrics.common import METRICS_VERSION
 from counterscene_env.planners import make_planner
 from counterscene_env.scene.sources import check_spec, is_generated
 from counterscene_env.sim import SimConfig
@@ -108,15 +109,18 @@ IDENTITY_DEFAULTS = {
 
 def run_identity(config: StressConfig, model: str, env_config: dict | None = None) -> dict:
     """What a stress run is, for :class:`~counterscene_env.stress.EpisodeLog`: its config but
-    the episode count, its model, and (sb3 planners) the env-config keys given on top of the
-    policy's sidecar (``--like``, ``--env-config``), which change what the policy sees. Keys
-    of :data:`IDENTITY_DEFAULTS` at their default are left out (runs from before the key)."""
+    the episode count, its model, the version of the metric definitions that score its
+    episodes (``metrics.METRICS_VERSION``: a run scored by another is not this run), and
+    (sb3 planners) the env-config keys given on top of the policy's sidecar (``--like``,
+    ``--env-config``), which change what the policy sees. Keys of :data:`IDENTITY_DEFAULTS`
+    at their default are left out (runs from before the key)."""
     out = config.to_dict()
     out.pop("episodes")
     for key, default in IDENTITY_DEFAULTS.items():
         if out[key] == default:
             out.pop(key)
     out["model"] = model
+    out["metrics_version"] = METRICS_VERSION
     if env_config:
         out["env_config"] = env_config
     return out

@@ -116,8 +116,14 @@ class EpisodeLog:
                 ) from None
             if have != self.identity:
                 diff = "; ".join(differences(have, self.identity))
+                why = (
+                    " (its episodes were scored by another definition of the metrics, "
+                    "docs/metrics.md: finish it with the version of counterscene that began it)"
+                    if have.get("metrics_version") != self.identity.get("metrics_version")
+                    else ""
+                )
                 raise ValueError(
-                    f"{self.dir} holds a stress run with other settings ({diff}): "
+                    f"{self.dir} holds a stress run with other settings ({diff}){why}: "
                     "use another --out, or delete it to start over"
                 )
         self._kept: list[str] | None = None  # set when the file's last line was cut short
