@@ -39,6 +39,11 @@ def test_horizons_past_the_log_are_empty_and_hbr_reads_the_braking_peak():
     assert at_7[0, 0] == pytest.approx(0.3) and math.isnan(at_7[0, 1])  # log ends at 4 s
     assert paper_tables.per_episode(records, "HBR3", [3])[:, 0].tolist() == [1.0, 1.0]
     assert paper_tables.per_episode(records, "HBR6", [3])[:, 0].tolist() == [1.0, 0.0]
+    # HBR -6 is the IDM's full braking: exactly 6 m/s^2 counts, whichever way floats round
+    # it; HBR -3 is the paper's strict "harder than 3".
+    at = [_record(0.0, dec) for dec in (6.0, 6.0 - 1e-9, 3.0 + 1e-9, 5.99)]
+    assert paper_tables.per_episode(at, "HBR6", [3])[:, 0].tolist() == [1.0, 1.0, 0.0, 0.0]
+    assert paper_tables.per_episode(at, "HBR3", [3])[:, 0].tolist() == [1.0, 1.0, 0.0, 1.0]
     # No adversary: no collision with one (0), not "nothing to measure".
     assert paper_tables.per_episode(records, "CR_adv", [3])[:, 0].tolist() == [1.0, 0.0]
 

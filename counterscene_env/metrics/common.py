@@ -26,6 +26,13 @@ def is_hard_braking(acc, threshold: float = HARD_BRAKE_THRESHOLD):
     return np.asarray(acc) < threshold - BRAKE_TOLERANCE
 
 
+def brakes_at_least(deceleration, amount: float):
+    """Whether a deceleration ``deceleration`` m/s^2 (positive: braking; NaN: False) reaches
+    ``amount`` m/s^2, within :data:`BRAKE_TOLERANCE`: a planner's full braking, exactly
+    ``amount``, counts whichever way floats round it."""
+    return np.asarray(deceleration) >= amount - BRAKE_TOLERANCE
+
+
 #: The version of the metric definitions, bumped whenever one changes what it measures. A
 #: stress run's identity carries it, so that a run is never resumed, or compared, across two
 #: definitions unnoticed. 1 (no version recorded): until 2 Dec 2026. 2: 3 Dec 2026, HBR along

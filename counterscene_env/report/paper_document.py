@@ -145,8 +145,8 @@ def markdown(built: dict, meta: dict, seconds: dict[str, dict[str, float]]) -> s
         "Values: `value [95 % interval]`; rates and ORR in %, ADE and FDE in m. A single "
         "horizon's rate has a Wilson interval, means and averages over several seconds a "
         "bootstrap interval over episodes. CR ego-adversary counts an episode without an "
-        "adversary as no collision with one. HBR -3 and HBR -6: the ego brakes harder than "
-        "3 or 6 m/s² within the horizon.",
+        "adversary as no collision with one. HBR -3: the ego brakes harder than 3 m/s² within "
+        "the horizon; HBR -6: at 6 m/s² (the IDM's full braking) or harder.",
         "",
         "The paper's rows are its own figures (its data set, its models), printed for "
         "reference, not comparable data; its HBR is a share of all agents' steps, not the "

@@ -44,6 +44,7 @@ import numpy as np
 
 from counterscene_env.metrics import (
     HARD_BRAKE_THRESHOLD,
+    brakes_at_least,
     horizon_values,
     is_hard_braking,
     rate_value,
@@ -64,7 +65,10 @@ METRICS = {
     "CR_adv": ("CR ego-adversary", "rate", True),
     "CR": ("CR ego-any", "rate", True),
 }
-#: Braking thresholds of the two HBR columns [m/s^2].
+#: Braking thresholds of the two HBR columns [m/s^2]. HBR -3 is the paper's, braking harder
+#: than 3 m/s^2; HBR -6 is braking at 6 m/s^2 or harder: highway-env's IDM never commands
+#: more than 6, so it flags an ego that needed all of its brakes (a strict "harder than 6"
+#: flagged that only where floats rounded the finite difference above 6).
 HBR_THRESHOLDS = {"HBR3": -HARD_BRAKE_THRESHOLD, "HBR6": 6.0}
 
 #: Each table's columns: name -> the horizon seconds averaged in it.
@@ -193,7 +197,11 @@ def _value(record: dict, row: dict, key: str) -> float:
         dec = row.get("DEC")
         if dec is None:  # a record written before DEC existed: only the -3 threshold
             return row.get("HBR", math.nan) if key == "HBR3" else math.nan
-        return math.nan if math.isnan(dec) else float(is_hard_braking(-dec, -HBR_THRESHOLDS[key]))
+        if math.isnan(dec):
+            return math.nan
+        if key == "HBR6":
+            return float(brakes_at_least(dec, HBR_THRESHOLDS[key]))
+        return float(is_hard_braking(-dec, -HBR_THRESHOLDS[key]))
     return rate_value(record, key, row.get(key))
 
 
