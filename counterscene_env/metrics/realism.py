@@ -52,11 +52,12 @@ def parked_agents(scene: Scene) -> np.ndarray:
     return ~fast.any(axis=1)
 
 
-def off_road_steps(scene: Scene) -> np.ndarray:
+def off_road_steps(scene: Scene, judged: np.ndarray | None = None) -> np.ndarray:
     """``[N, T_roll]`` bool: agent valid and its centre off the road
-    (:meth:`RoadMap.off_road`: outside the drivable area, inside the map's extent)."""
+    (:meth:`RoadMap.off_road`: outside the drivable area, inside the map's extent);
+    ``judged``: :func:`judged_steps` of the scene where the caller has it already."""
     sl = rollout_slice(scene)
-    return scene.road.off_road(scene.positions[:, sl]) & scene.valid[:, sl]
+    return scene.road.off_road(scene.positions[:, sl], judged) & scene.valid[:, sl]
 
 
 def judged_steps(scene: Scene) -> np.ndarray:
@@ -148,7 +149,7 @@ def logged_off_road_steps(sim: Scene, factual: Scene) -> tuple[np.ndarray, np.nd
     """
     p_fac, _, ok_fac = logged_rollout(sim, factual)
     judged = sim.road.judged(p_fac) & ok_fac
-    return sim.road.off_road(p_fac) & judged, judged
+    return sim.road.off_road(p_fac, judged), judged
 
 
 def displacement_steps(sim: Scene, factual: Scene) -> tuple[np.ndarray, np.ndarray]:

@@ -148,7 +148,8 @@ def evaluate_scene(
     """
     ego_hits = ego_collision_steps(sim)
     overlaps = agent_overlaps(sim)
-    off, judged = off_road_steps(sim), judged_steps(sim)
+    judged = judged_steps(sim)
+    off = off_road_steps(sim, judged)
     parked = parked_agents(sim)
     acc, mask = braking_samples(sim, None, "position", smooth)
     flags = is_hard_braking(acc) & mask  # as hard_braking_flags, from one pass

@@ -164,14 +164,13 @@ def unfinished(label: str, run: Run) -> str | None:
     them all): ``"run LABEL is unfinished: 37 of 200 episodes"``, or that its
     ``metrics.json``, which says how many were asked for, is missing."""
     done = len(run.records)
-    if run.summary is None:
+    if run.complete is None:
         return (
             f"run {label} has no metrics.json: whether its {count(done, 'episode')} are the "
             "whole run is unknown"
         )
-    planned = run.planned_episodes
-    if planned is not None and done < planned:
-        return f"run {label} is unfinished: {done} of {planned} episodes"
+    if not run.complete:
+        return f"run {label} is unfinished: {done} of {run.planned_episodes} episodes"
     return None
 
 
@@ -270,10 +269,9 @@ def document(c: Comparison, figures: Sequence[Figure] = ()) -> list[Block]:
 
 def _episodes(run: Run) -> str:
     """``"8 episodes"``, or ``"3 of 8 episodes (unfinished)"``."""
-    done, planned = len(run.records), run.planned_episodes
-    if planned is not None and done < planned:
-        return f"{done} of {count(planned, 'episode')} (unfinished)"
-    return count(done, "episode")
+    if run.complete is False:
+        return f"{len(run.records)} of {count(run.planned_episodes, 'episode')} (unfinished)"
+    return count(len(run.records), "episode")
 
 
 def to_json(c: Comparison) -> dict:
@@ -288,9 +286,7 @@ def to_json(c: Comparison) -> dict:
                 "directory": str(r.directory),
                 "episodes": len(r.records),
                 "episodes_requested": r.planned_episodes,
-                "complete": None
-                if r.summary is None
-                else r.planned_episodes is None or len(r.records) >= r.planned_episodes,
+                "complete": r.complete,
             }
             for label, r in zip(c.labels, c.runs, strict=True)
         ],

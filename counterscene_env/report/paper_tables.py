@@ -51,6 +51,7 @@ from counterscene_env.metrics import (
 )
 from counterscene_env.report import stats
 from counterscene_env.report.stats import Estimate, Paired
+from counterscene_env.report.tables import field
 
 #: Metric -> (label, unit, is a rate). Values come from the records' per-second entries.
 METRICS = {
@@ -188,8 +189,9 @@ def per_episode(records: Sequence[dict], key: str, seconds: Sequence[int]) -> np
 
 def episode_flags(records: Sequence[dict], key: str) -> np.ndarray:
     """``[E]`` whole-episode 0/1 flag ``key`` (of :data:`EPISODE_RATES`) per episode; NaN
-    where a record lacks it (one written before the key existed)."""
-    return np.array([rate_value(r, key, r.get(key)) for r in records], dtype=np.float64)
+    where a record lacks it (one written before the key existed); as every report reads a
+    record field (``report.tables.field``)."""
+    return field(key)(records)
 
 
 def _value(record: dict, row: dict, key: str) -> float:

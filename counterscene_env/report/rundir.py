@@ -57,6 +57,15 @@ class Run:
             "episodes_requested", self.summary.get("config", {}).get("episodes")
         )
 
+    @property
+    def complete(self) -> bool | None:
+        """Whether every episode the run was started for is in ``records`` (None: no
+        ``metrics.json`` to tell how many that is)."""
+        if self.summary is None:
+            return None
+        planned = self.planned_episodes
+        return planned is None or len(self.records) >= planned
+
     def sim(self) -> dict:
         """The closed-loop settings of the run (``SimConfig`` fields as a dict)."""
         return dict(self.identity.get("sim", {}))

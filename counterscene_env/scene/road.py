@@ -123,7 +123,7 @@ class RoadMap:
         if self.extent is not None:
             shapely.prepare(self.extent)
 
-    def off_road(self, points: np.ndarray) -> np.ndarray:
+    def off_road(self, points: np.ndarray, judged: np.ndarray | None = None) -> np.ndarray:
         """Whether points are off the road: outside the drivable area, inside the map's extent.
 
         The one definition of "off-road" (ORR, the step info, road keeping): a point beyond the
@@ -131,12 +131,16 @@ class RoadMap:
 
         Args:
             points: ``[..., 2]`` m, world frame.
+            judged: ``[...]`` bool, :meth:`judged` of the same points where a caller has it
+                already (an off-road rate needs both); None: computed here.
 
         Returns:
             ``[...]`` bool; False for non-finite points.
         """
         points = np.asarray(points, dtype=np.float64)
-        return ~points_in_area(self.drivable_area, points) & self.judged(points)
+        if judged is None:
+            judged = self.judged(points)
+        return ~points_in_area(self.drivable_area, points) & judged
 
     def judged(self, points: np.ndarray) -> np.ndarray:
         """Whether :meth:`off_road` can judge points: finite and inside the map's extent (a

@@ -131,7 +131,7 @@ def effective_identity(identity: dict) -> dict:
     :func:`run_identity` leaves out at their default (:data:`IDENTITY_DEFAULTS`; no
     ``env_config``: ``{}``) put back, and the closed-loop settings a run from before a
     ``SimConfig`` field did not record at today's default. A closed-loop setting of None stays
-    None: the world model's own default."""
+    None (``sim.config.NONE_MEANS`` says what it means)."""
     sim = {**dataclasses.asdict(SimConfig()), **identity.get("sim", {})}
     return {**IDENTITY_DEFAULTS, "env_config": {}, **identity, "sim": sim}
 

@@ -116,12 +116,17 @@ def read_config(directory: str | os.PathLike) -> dict[str, Any]:
     return meta
 
 
+def _names_default(name: str | os.PathLike | None) -> bool:
+    """Whether ``name`` is the string ``"default"`` (a ``Path`` is always a path:
+    ``Path("default") == "default"`` is False)."""
+    return isinstance(name, str) and name == DEFAULT_MODEL
+
+
 def model_dir(name: str | os.PathLike | None) -> Path:
     """The checkpoint directory ``name`` stands for: :data:`DEFAULT_MODEL_DIR` for ``None`` and
     the string ``"default"`` (even when the working directory holds a ``default`` directory:
     write ``"./default"`` for that), else ``name`` as a path."""
-    # A str compare only: Path("default") == "default" is False, so a Path is always a path.
-    if name is None or (isinstance(name, str) and name == DEFAULT_MODEL):
+    if name is None or _names_default(name):
         return DEFAULT_MODEL_DIR
     return Path(name)
 
@@ -130,7 +135,7 @@ def shadowed_default(name: str | os.PathLike | None) -> Path | None:
     """``Path("default")`` when ``name`` is the string ``"default"`` and the working directory
     holds a model directory of that name (a ``config.json`` or ``model.safetensors`` in it),
     which ``name`` does not load (:func:`model_dir`); else ``None``."""
-    if not (isinstance(name, str) and name == DEFAULT_MODEL):
+    if not _names_default(name):
         return None
     here = Path(DEFAULT_MODEL)
     return here if any((here / f).is_file() for f in (CONFIG, WEIGHTS)) else None

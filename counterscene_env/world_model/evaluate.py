@@ -280,8 +280,10 @@ def _score_scene(
     # Off-road is judged once per window for every agent; the groups then sum their subsets.
     # A point beyond a cropped map's extent is neither on nor off its roads: out of the rate.
     world = [from_frame(xy, origin) for xy in (p, c, gt)]
-    off_p, off_c, off_log = (road.off_road(xy) for xy in world)
     in_p, in_c, in_log = (road.judged(xy) for xy in world)
+    off_p, off_c, off_log = (
+        road.off_road(xy, seen) for xy, seen in zip(world, (in_p, in_c, in_log), strict=True)
+    )
     members = [("all", np.ones(len(ok), bool)), ("still", still)]
     members += [(name, bins == i) for i, name in enumerate(SPEED_BINS)]
     for name, sel in members:
