@@ -524,6 +524,26 @@ def test_an_episode_that_ended_in_a_collision_counts_as_collided_at_every_later_
     assert metrics.horizon_values(ended_with_log, "8") == {}
 
 
+def test_a_log_that_ends_in_the_collision_does_not_count_past_its_end(road):
+    """A short real log ends every row's episode on it alike. A stress episode (never
+    terminated) whose log runs out while the ego still overlaps the car it hit is no episode
+    at later horizons: counting the crashed ones there gave the guided rows of the real-log
+    tables more episodes past a short log's end than the others, all collided. Only an
+    episode its termination cut short (the env's ``terminate_on_collision``) counts there."""
+    scene = crash_scene(road, steps=HIST + 27)  # the log ends 2.7 s in, mid-crash (2.5 s)
+    assert metrics.ego_collision_steps(scene)[-1]
+    ran_out = metrics.evaluate_scene(scene)
+    assert not ran_out["ends_in_ego_collision"] and ran_out["cr"] == 1.0
+    assert metrics.horizon_values(ran_out, "3") == {}
+    cut_short = metrics.evaluate_scene(scene, terminated=True)
+    assert cut_short["ends_in_ego_collision"]
+    assert metrics.horizon_values(cut_short, "3")["CR"] == 1.0
+    assert metrics.horizon_values(cut_short, "8")["CR"] == 1.0
+    # Terminated (off the road, say) without a collision: nothing is known past its end.
+    clear = metrics.evaluate_scene(crash_scene(road, steps=HIST + 20), terminated=True)
+    assert not clear["ends_in_ego_collision"]
+
+
 def test_every_table_counts_an_episode_without_adversary_as_no_collision_with_one():
     """The ego-adversary CR is a rate over episodes: a selector that finds no adversary in an
     episode made no collision with one there. ``stress``'s summary, ``report``/``compare``

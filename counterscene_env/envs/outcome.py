@@ -64,14 +64,22 @@ def ends_episode(info: Mapping, config: Mapping) -> bool:
     )
 
 
-def episode_summary(sim: Scene, factual: Scene, ego: int, adversary: Sequence[str | None]) -> dict:
+def episode_summary(
+    sim: Scene,
+    factual: Scene,
+    ego: int,
+    adversary: Sequence[str | None],
+    terminated: bool = False,
+) -> dict:
     """Ego row ``ego``'s metric summary (``metrics.evaluate_scene``) of the simulated episode
     ``sim`` so far, against the log ``factual`` over the same steps; ``adversary``: its
-    adversary's id at each rollout step (``Episode.adversary_ids``)."""
+    adversary's id at each rollout step (``Episode.adversary_ids``); ``terminated``: the
+    ego's episode was ended by its termination (a collision or leaving the road, as
+    configured), so a collision at its last step ended it."""
     if ego != sim.ego_index:
         sim = sim.replace(ego_index=ego)
     factual = factual.time_slice(0, sim.num_steps).replace(ego_index=ego)
-    return metrics.evaluate_scene(sim, factual, adversary=adversary)
+    return metrics.evaluate_scene(sim, factual, adversary=adversary, terminated=terminated)
 
 
 class EgoOutcomes:
@@ -136,7 +144,11 @@ class EgoOutcomes:
     def episode_metrics(self, k: int = 0) -> dict:
         """Ego ``k``'s metric summary of the episode so far (metrics.evaluate_scene)."""
         return episode_summary(
-            self.loop.scene(self.slot), self.scene, self.egos[k], self.episode.adversary_ids(k)
+            self.loop.scene(self.slot),
+            self.scene,
+            self.egos[k],
+            self.episode.adversary_ids(k),
+            terminated=self.ended[k],
         )
 
     def stop_ended_egos(self) -> None:

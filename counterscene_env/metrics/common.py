@@ -38,8 +38,9 @@ def brakes_at_least(deceleration, amount: float):
 #: definitions unnoticed. 1 (no version recorded): until 2 Dec 2026. 2: 3 Dec 2026, HBR along
 #: the path and from the first rollout step, ORR within a cropped map's extent, an episode the
 #: ego's crash ended counted at later horizons, no adversary counted as no collision with one
-#: in every table (docs/metrics.md).
-METRICS_VERSION = 2
+#: in every table. 3: 3 Dec 2026, only an episode that its termination cut short counts at
+#: later horizons (2 counted one whose log ended with the ego in a collision too; docs/metrics.md).
+METRICS_VERSION = 3
 
 
 #: Per-second keys of :func:`evaluate_scene` and :func:`aggregate`: the paper's table.

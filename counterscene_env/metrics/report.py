@@ -58,12 +58,13 @@ EVENT_KEYS = ("CR", "CR_adv", "HBR", "DEC")
 def horizon_values(record: dict, second: str) -> dict:
     """A record's per-second values at horizon ``second`` (a key of its ``per_second``).
 
-    An episode whose rollout ended before that second counts there only if it ended with the
-    ego in a collision (``ends_in_ego_collision``: ``terminate_on_collision`` ends it at that
-    step), and then only with its :data:`EVENT_KEYS`: a crash at 3 s is a collision within
-    8 s, but the crashed episode has no 8 s trajectory to score. Any other episode that ended
-    early (with its log) gives ``{}``: one that ended at 3 s without a collision is no
-    collision-free episode "at 10 s" (docs/metrics.md). The tables of ``stress``, ``report``
+    An episode whose rollout ended before that second counts there only if its termination
+    cut it short after the ego had collided (``ends_in_ego_collision``: an env's
+    ``terminate_on_collision`` ends it at the crash), and then only with its
+    :data:`EVENT_KEYS`: a crash at 3 s is a collision within 8 s, but the crashed episode has
+    no 8 s trajectory to score. Any other episode that ended early gives ``{}``: one whose
+    log ended at 3 s is no episode "at 10 s", collided or not, for any row
+    (docs/metrics.md). The tables of ``stress``, ``report``
     and ``paper-tables`` all read horizons through this."""
     values = record["per_second"].get(second, {})
     if float(second) <= float(record.get("rollout_s", math.inf)) + 1e-6:
@@ -109,6 +110,7 @@ def evaluate_scene(
     adversary: int | str | Sequence[int | str | None] | None = None,
     horizons: Sequence[float] = tuple(range(1, 11)),
     smooth: float = 0.0,
+    terminated: bool = False,
 ) -> dict:
     """All metrics of one simulated scene, as a JSON-serialisable dict of plain Python values.
 
@@ -122,12 +124,20 @@ def evaluate_scene(
             (``metrics.common.adversary_tenures``).
         horizons: seconds at which the per-second values are reported.
         smooth: s, moving-average window of the acceleration signal for HBR (0: none).
+        terminated: the rollout was cut short at its last step by the episode's termination
+            (an env's ``terminate_on_collision`` or ``terminate_on_off_road``), not ended by
+            its duration or its log. Only such an episode, if the ego had collided, counts at
+            the horizons past its end: a log that runs out ends every row's episode on it
+            alike, crashed or not, and counting the crashed ones there would score the rows
+            that crash on more episodes than the others.
 
     Returns:
         ``{"scenario_id", "rollout_s", "ends_in_ego_collision", "adversary_id",
         "adversary_ids", "per_second", <SCENE_KEYS>}`` where ``rollout_s`` is the rollout's
-        length, s, ``ends_in_ego_collision`` whether the ego overlaps another agent at its last
-        step (an env that terminates on collision ends there; :func:`horizon_values`),
+        length, s, ``ends_in_ego_collision`` whether the rollout was cut short by its
+        termination after the ego had collided (``terminated``; with
+        ``terminate_on_collision`` the crash ends it), so that it collided within every later
+        horizon (:func:`horizon_values`),
         ``adversary_ids`` lists every agent that was the adversary, in
         the order they were first chosen, and ``adversary_id`` is the latest (None: none);
         ``per_second[str(h)]`` holds ``ADE``/``FDE`` (m), ``ORR``, ``HBR`` (= hbr_ego within h),
@@ -206,7 +216,7 @@ def evaluate_scene(
     out = {
         "scenario_id": str(sim.scenario_id),
         "rollout_s": float(rollout_steps(sim) * sim.dt),
-        "ends_in_ego_collision": bool(ego_hits[-1]) if ego_hits.size else False,
+        "ends_in_ego_collision": bool(terminated and ego_hits.any()),
         "adversary_id": _latest_adversary(sim, adversary),
         "adversary_ids": adversary_ids,
         "per_second": per_second,
