@@ -74,8 +74,8 @@ def episode_summary(
     """Ego row ``ego``'s metric summary (``metrics.evaluate_scene``) of the simulated episode
     ``sim`` so far, against the log ``factual`` over the same steps; ``adversary``: its
     adversary's id at each rollout step (``Episode.adversary_ids``); ``terminated``: the
-    ego's episode was ended by its termination (a collision or leaving the road, as
-    configured), so a collision at its last step ended it."""
+    ego's episode was cut short by its termination (a collision or leaving the road, as
+    configured), so its collision, if any, holds at every later horizon."""
     if ego != sim.ego_index:
         sim = sim.replace(ego_index=ego)
     factual = factual.time_slice(0, sim.num_steps).replace(ego_index=ego)
