@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,11 +66,15 @@ METRICS = {
     "CR_adv": ("CR ego-adversary", "rate", True),
     "CR": ("CR ego-any", "rate", True),
 }
-#: Braking thresholds of the two HBR columns [m/s^2]. HBR -3 is the paper's, braking harder
-#: than 3 m/s^2; HBR -6 is braking at 6 m/s^2 or harder: highway-env's IDM never commands
-#: more than 6, so it flags an ego that needed all of its brakes (a strict "harder than 6"
-#: flagged that only where floats rounded the finite difference above 6).
-HBR_THRESHOLDS = {"HBR3": -HARD_BRAKE_THRESHOLD, "HBR6": 6.0}
+#: The two HBR columns: whether an episode's strongest braking within the horizon (``DEC``,
+#: m/s^2, positive) flags it. HBR -3 is the paper's, braking harder than 3 m/s^2; HBR -6 is
+#: braking at 6 m/s^2 or harder: highway-env's IDM never commands more than 6, so it flags an
+#: ego that needed all of its brakes (a strict "harder than 6" flagged that only where floats
+#: rounded the finite difference above 6).
+HBR_RULES: dict[str, Callable[[float], bool]] = {
+    "HBR3": lambda dec: bool(is_hard_braking(-dec, HARD_BRAKE_THRESHOLD)),
+    "HBR6": lambda dec: bool(brakes_at_least(dec, 6.0)),
+}
 
 #: Each table's columns: name -> the horizon seconds averaged in it.
 COLUMNS = {
@@ -195,15 +199,11 @@ def episode_flags(records: Sequence[dict], key: str) -> np.ndarray:
 
 
 def _value(record: dict, row: dict, key: str) -> float:
-    if key in HBR_THRESHOLDS:
+    if key in HBR_RULES:
         dec = row.get("DEC")
         if dec is None:  # a record written before DEC existed: only the -3 threshold
             return row.get("HBR", math.nan) if key == "HBR3" else math.nan
-        if math.isnan(dec):
-            return math.nan
-        if key == "HBR6":
-            return float(brakes_at_least(dec, HBR_THRESHOLDS[key]))
-        return float(is_hard_braking(-dec, -HBR_THRESHOLDS[key]))
+        return math.nan if math.isnan(dec) else float(HBR_RULES[key](dec))
     return rate_value(record, key, row.get(key))
 
 
